@@ -1,0 +1,252 @@
+"""The agent's communication module (CCM-SLAM §4.5), free of any transport.
+
+New keyframes and map points are sent once with all their data, later changes only
+as pose/position updates. Messages leave at most at ``rate_hz`` and are cut at
+``max_msg_bytes``; what does not fit waits for the next message. Sending is
+optimistic: an item counts as delivered unless an ack shows a gap (a later id
+acked while an earlier one was not), or no ack came within ``resend_timeout_s``
+(which also covers a lost last message and a server that restarted). Both put the
+full item back in the queue.
+
+The same class serves the real VO agent and the feature-level simulated agent.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.messages import Ack, KeyframeBatch, KeyframeUpdate, MapPoints, NewKeyframe
+
+_KF_OVERHEAD = 900  # msgpack keys, 3 poses and scalars of one keyframe
+_KP_BYTES = 8 + 1 + 32 + 8  # keypoint, octave, descriptor, map point id
+_MP_BYTES = 8 + 8 + 24 + 32
+_UPD_KF_BYTES = 500
+
+
+def estimate_kf_bytes(kf: NewKeyframe) -> int:
+    return _KF_OVERHEAD + _KP_BYTES * len(kf.keypoints)
+
+
+@dataclass
+class _Sent:
+    t: float
+    seq: int
+
+
+@dataclass
+class CommStats:
+    messages: int = 0
+    bytes: int = 0
+    kf_sent: int = 0
+    kf_resent: int = 0
+    mp_sent: int = 0
+    mp_resent: int = 0
+    kf_dropped_unacked: int = 0
+    ack_latencies: list[float] = field(default_factory=list)
+
+
+class CommModule:
+    def __init__(
+        self,
+        agent: str,
+        rate_hz: float = 5.0,
+        max_msg_bytes: int = 400_000,
+        resend_timeout_s: float = 2.0,
+    ) -> None:
+        self.agent = agent
+        self.min_interval = 1.0 / rate_hz
+        self.max_msg_bytes = max_msg_bytes
+        self.resend_timeout_s = resend_timeout_s
+        self.seq = 0
+        self.last_send = -1e18
+        # Full data of every keyframe / map point not yet acknowledged.
+        self.kfs: dict[int, NewKeyframe] = {}
+        self.mps: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # id -> ref, p_ref, desc
+        self.queued_kfs: list[int] = []  # sorted ids waiting to go out
+        self.queued_mps: set[int] = set()
+        self.sent_kfs: dict[int, _Sent] = {}
+        self.sent_mps: dict[int, _Sent] = {}
+        self.first_sent_at: dict[int, float] = {}
+        self.kf_updates: dict[int, KeyframeUpdate] = {}
+        self.mp_updates: dict[int, tuple[int, np.ndarray]] = {}
+        self.acked_kfs: set[int] = set()
+        self._last_seq_by_kf: dict[int, int] = {}
+        self.resent_reasons: dict[tuple[str, str], int] = {}
+        self.stats = CommStats()
+
+    # --- input from the local map -------------------------------------------------
+    def add_keyframe(self, kf: NewKeyframe) -> None:
+        self.kfs[kf.id] = kf
+        bisect.insort(self.queued_kfs, kf.id)
+
+    def add_map_points(self, mps: MapPoints) -> None:
+        for j, i in enumerate(mps.ids.tolist()):
+            self.mps[i] = (int(mps.ref_kf[j]), mps.p_ref[j].copy(), mps.descriptors[j].copy())
+            self.queued_mps.add(i)
+
+    def update_keyframe(self, upd: KeyframeUpdate) -> None:
+        if upd.id in self.kfs and upd.id not in self.sent_kfs:
+            # Not sent yet: fold the change into the new-keyframe message.
+            kf = self.kfs[upd.id]
+            kf.pred_id, kf.T_pred_kf = upd.pred_id, upd.T_pred_kf
+            kf.parent_id, kf.T_par_kf = upd.parent_id, upd.T_par_kf
+            if upd.mp_ids is not None:
+                kf.mp_ids = upd.mp_ids
+            return
+        self.kf_updates[upd.id] = upd
+
+    def update_map_point(self, mp_id: int, ref_kf: int, p_ref: np.ndarray) -> None:
+        if mp_id in self.mps and mp_id not in self.sent_mps:
+            _, _, desc = self.mps[mp_id]
+            self.mps[mp_id] = (ref_kf, np.asarray(p_ref, float), desc)
+            return
+        self.mp_updates[mp_id] = (ref_kf, np.asarray(p_ref, float))
+
+    def forget_keyframe(self, kf_id: int) -> None:
+        """The local map dropped an unacknowledged keyframe (buffer full): it is lost."""
+        if kf_id in self.kfs:
+            del self.kfs[kf_id]
+            self.stats.kf_dropped_unacked += 1
+        self.sent_kfs.pop(kf_id, None)
+        i = bisect.bisect_left(self.queued_kfs, kf_id)
+        if i < len(self.queued_kfs) and self.queued_kfs[i] == kf_id:
+            self.queued_kfs.pop(i)
+        self.kf_updates.pop(kf_id, None)
+
+    @property
+    def unacked_kf_ids(self) -> set[int]:
+        return set(self.kfs)
+
+    @property
+    def pending(self) -> bool:
+        return bool(self.kfs or self.mps)
+
+    # --- acks -------------------------------------------------------------------------
+    def on_ack(self, ack: Ack, now: float) -> list[float]:
+        """Drop acknowledged data; requeue what the ack proves lost. Returns the
+        publish-to-ack latency of each keyframe acknowledged for the first time."""
+        lat: list[float] = []
+        acked = ack.kf_ids.tolist()
+        newest_seq = max((self._last_seq_by_kf.get(i, -1) for i in acked), default=-1)
+        for i in acked:
+            if i in self.kfs:
+                del self.kfs[i]
+                t0 = self.first_sent_at.pop(i, None)
+                if t0 is not None:
+                    lat.append(now - t0)
+            self.sent_kfs.pop(i, None)
+            self._last_seq_by_kf.pop(i, None)
+            self.acked_kfs.add(i)
+        for i in ack.mp_ids.tolist():
+            self.mps.pop(i, None)
+            self.sent_mps.pop(i, None)
+            self.queued_mps.discard(i)
+        if newest_seq >= 0:
+            # Gap evidence: anything sent in an earlier message than an acked keyframe,
+            # yet not acked itself, was lost (messages are processed in order).
+            for i, s in list(self.sent_kfs.items()):
+                if s.seq < newest_seq:
+                    self._requeue_kf(i, "gap")
+            for i, s in list(self.sent_mps.items()):
+                if s.seq < newest_seq:
+                    self._requeue_mp(i, "gap")
+        self.stats.ack_latencies.extend(lat)
+        return lat
+
+    def check_timeouts(self, now: float) -> int:
+        n = 0
+        for i, s in list(self.sent_kfs.items()):
+            if now - s.t > self.resend_timeout_s:
+                self._requeue_kf(i, "timeout")
+                n += 1
+        for i, s in list(self.sent_mps.items()):
+            if now - s.t > self.resend_timeout_s:
+                self._requeue_mp(i, "timeout")
+                n += 1
+        return n
+
+    def _requeue_kf(self, i: int, reason: str) -> None:
+        self.sent_kfs.pop(i, None)
+        if i in self.kfs:
+            j = bisect.bisect_left(self.queued_kfs, i)
+            if j >= len(self.queued_kfs) or self.queued_kfs[j] != i:
+                self.queued_kfs.insert(j, i)
+                self.resent_reasons[("kf", reason)] = self.resent_reasons.get(("kf", reason), 0) + 1
+
+    def _requeue_mp(self, i: int, reason: str) -> None:
+        self.sent_mps.pop(i, None)
+        if i in self.mps and i not in self.queued_mps:
+            self.queued_mps.add(i)
+            self.resent_reasons[("mp", reason)] = self.resent_reasons.get(("mp", reason), 0) + 1
+
+    # --- output -------------------------------------------------------------------------
+    def due(self, now: float) -> bool:
+        has = self.queued_kfs or self.queued_mps or self.kf_updates or self.mp_updates
+        return bool(has) and now - self.last_send >= self.min_interval
+
+    def next_message(self, now: float, now_ns: int, kf_ref: int) -> KeyframeBatch | None:
+        """The next batch if one is due, within the size cap."""
+        if not self.due(now):
+            return None
+        budget = self.max_msg_bytes
+        seq = self.seq
+        new_kfs: list[NewKeyframe] = []
+        while self.queued_kfs:
+            kf = self.kfs.get(self.queued_kfs[0])
+            if kf is None:
+                self.queued_kfs.pop(0)
+                continue
+            size = estimate_kf_bytes(kf)
+            if new_kfs and size > budget:
+                break
+            budget -= size
+            new_kfs.append(kf)
+            self.queued_kfs.pop(0)
+        for kf in new_kfs:
+            resend = kf.id in self.first_sent_at
+            self.stats.kf_resent += resend
+            self.stats.kf_sent += 1
+            self.first_sent_at.setdefault(kf.id, now)
+            self.sent_kfs[kf.id] = _Sent(now, seq)
+            self._last_seq_by_kf[kf.id] = seq
+        # Map points in id order, as many as fit.
+        mp_ids = sorted(self.queued_mps)[: max(0, budget // _MP_BYTES)]
+        for i in mp_ids:
+            self.queued_mps.discard(i)
+            self.sent_mps[i] = _Sent(now, seq)
+        budget -= len(mp_ids) * _MP_BYTES
+        new_mps = self._pack_mps(mp_ids)
+        self.stats.mp_sent += len(mp_ids)
+        kf_upd = []
+        for i in sorted(self.kf_updates)[: max(0, budget // _UPD_KF_BYTES)]:
+            kf_upd.append(self.kf_updates.pop(i))
+        budget -= len(kf_upd) * _UPD_KF_BYTES
+        upd_ids = sorted(self.mp_updates)[: max(0, budget // 48)]
+        mp_upd = MapPoints(
+            np.array(upd_ids, np.int64),
+            np.array([self.mp_updates[i][0] for i in upd_ids], np.int64),
+            np.array([self.mp_updates[i][1] for i in upd_ids], np.float64).reshape(-1, 3),
+            None,
+        )
+        for i in upd_ids:
+            del self.mp_updates[i]
+        self.seq += 1
+        self.last_send = now
+        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)
+
+    def record_sent(self, nbytes: int) -> None:
+        self.stats.messages += 1
+        self.stats.bytes += nbytes
+
+    def _pack_mps(self, ids: list[int]) -> MapPoints:
+        if not ids:
+            return MapPoints.empty()
+        return MapPoints(
+            np.array(ids, np.int64),
+            np.array([self.mps[i][0] for i in ids], np.int64),
+            np.stack([self.mps[i][1] for i in ids]).astype(np.float64),
+            np.stack([self.mps[i][2] for i in ids]).astype(np.uint8),
+        )

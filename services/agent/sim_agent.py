@@ -1,0 +1,267 @@
+"""Feature-level simulated agent: no images, the same messages as the real agent.
+
+It flies a real EuRoC trajectory through a world of fixed landmarks (each with its
+own 256-bit descriptor), observes them through the EuRoC cam0 model with pixel
+noise and descriptor bit flips, and estimates its pose like a drifting VO would:
+each frame-to-frame motion is perturbed in rotation and translation, and the
+translation is multiplied by a scale that drifts. With every noise set to zero the
+estimate is the ground truth expressed in the frame of the first camera.
+
+Cheap by design (the load-test agent): per frame a few 4x4 products; per keyframe
+one vectorized projection of the landmarks near the camera.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.camera import PinholeRadTan
+from shared.geometry import exp_so3, relative, rotation_angle, se3_inv
+from shared.messages import MapPoints, NewKeyframe
+from shared.trajectory import SEQUENCES, Trajectory, load_euroc_gt
+
+
+@dataclass
+class DriftModel:
+    """Noise of the simulated VO, per metre travelled (random walk) and per second."""
+
+    rot_deg_per_sqrt_m: float = 0.05
+    trans_m_per_sqrt_m: float = 0.005
+    scale_drift_per_s: float = 0.0  # deterministic relative scale change per second
+    scale_rw_per_sqrt_s: float = 0.0005
+    pixel_sigma: float = 0.7
+    bit_flip: float = 0.03
+    depth_sigma_rel: float = 0.01
+
+    @staticmethod
+    def zero() -> DriftModel:
+        return DriftModel(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+class LandmarkWorld:
+    """Fixed landmarks on the walls, floor, ceiling and pillars of a hall that
+    contains every MH trajectory. Deterministic from the seed; shared by all agents
+    of a run so that their observations of a place agree."""
+
+    def __init__(self, seed: int = 0, density: float = 12.0, margin: float = 4.0) -> None:
+        rng = np.random.default_rng(seed)
+        pos = np.concatenate([load_euroc_gt(s).positions for s in SEQUENCES])
+        lo = pos.min(axis=0) - margin
+        hi = pos.max(axis=0) + margin
+        lo[2] = pos[:, 2].min() - 1.5
+        hi[2] = pos[:, 2].max() + 3.0
+        pts = [self._box_surface(rng, lo, hi, density)]
+        # Pillars away from the flight paths give near structure and parallax.
+        n_pillars = 0
+        while n_pillars < 40:
+            c = rng.uniform(lo[:2] + 1, hi[:2] - 1)
+            if np.min(np.linalg.norm(pos[::20, :2] - c, axis=1)) < 1.5:
+                continue
+            half = rng.uniform(0.2, 0.6, size=2)
+            plo = np.array([c[0] - half[0], c[1] - half[1], lo[2]])
+            phi = np.array([c[0] + half[0], c[1] + half[1], hi[2]])
+            pts.append(self._box_surface(rng, plo, phi, density * 2, sides_only=True))
+            n_pillars += 1
+        self.points = np.concatenate(pts)
+        self.descriptors = rng.integers(0, 256, size=(len(self.points), 32), dtype=np.uint8)
+        self.lo, self.hi = lo, hi
+
+    @staticmethod
+    def _box_surface(rng, lo, hi, density, sides_only: bool = False) -> np.ndarray:
+        ext = hi - lo
+        faces = []
+        for axis in range(3):
+            if sides_only and axis == 2:
+                continue
+            a, b = [i for i in range(3) if i != axis]
+            area = ext[a] * ext[b]
+            for side in (lo[axis], hi[axis]):
+                n = rng.poisson(area * density)
+                p = np.empty((n, 3))
+                p[:, axis] = side
+                p[:, a] = rng.uniform(lo[a], hi[a], n)
+                p[:, b] = rng.uniform(lo[b], hi[b], n)
+                faces.append(p)
+        return np.concatenate(faces)
+
+
+@dataclass
+class SimKeyframe:
+    kf: NewKeyframe
+    new_mps: MapPoints
+    landmarks: np.ndarray  # landmark ids observed (for covisibility)
+
+
+@dataclass
+class SimAgentState:
+    frame: int = 0
+    T_l_c: np.ndarray = field(default_factory=lambda: np.eye(4))
+    scale: float = 1.0
+
+
+class SimAgent:
+    """Steps through a trajectory; :meth:`step` returns the frame's estimated pose and,
+    when the frame becomes a keyframe, the keyframe with its new map points."""
+
+    def __init__(
+        self,
+        traj: Trajectory,
+        world: LandmarkWorld,
+        camera: PinholeRadTan | None = None,
+        drift: DriftModel | None = None,
+        seed: int = 0,
+        kf_dist: float = 0.25,
+        kf_angle_deg: float = 10.0,
+        kf_max_dt: float = 1.0,
+        max_features: int = 1000,
+        max_range: float = 12.0,
+        covis_window: int = 50,
+    ) -> None:
+        self.traj = traj
+        self.world = world
+        self.cam = camera or PinholeRadTan.euroc_cam0()
+        self.drift = drift or DriftModel()
+        self.rng = np.random.default_rng(seed)
+        self.kf_dist, self.kf_angle = kf_dist, np.deg2rad(kf_angle_deg)
+        self.kf_max_dt_ns = int(kf_max_dt * 1e9)
+        self.max_features, self.max_range = max_features, max_range
+        self.state = SimAgentState()
+        self.next_kf_id = 0
+        self.next_mp_id = 0
+        self.lm_to_mp: dict[int, int] = {}
+        self.last_kf: tuple[int, np.ndarray, np.ndarray, int] | None = None  # id, T_l, T_w, ns
+        self.recent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.covis_window = covis_window
+
+    def __len__(self) -> int:
+        return len(self.traj)
+
+    @property
+    def done(self) -> bool:
+        return self.state.frame >= len(self.traj)
+
+    def _perturbed_motion(self, T_rel: np.ndarray, dt: float) -> np.ndarray:
+        d = self.drift
+        dist = float(np.linalg.norm(T_rel[:3, 3]))
+        st = self.state
+        if d.scale_drift_per_s or d.scale_rw_per_sqrt_s:
+            st.scale *= float(
+                np.exp(d.scale_drift_per_s * dt + d.scale_rw_per_sqrt_s * np.sqrt(dt)
+                       * self.rng.standard_normal())
+            )  # fmt: skip
+        T = T_rel.copy()
+        if d.rot_deg_per_sqrt_m:
+            w = self.rng.standard_normal(3) * np.deg2rad(d.rot_deg_per_sqrt_m) * np.sqrt(dist)
+            T[:3, :3] = exp_so3(w) @ T[:3, :3]
+        T[:3, 3] = st.scale * T[:3, 3]
+        if d.trans_m_per_sqrt_m:
+            T[:3, 3] += self.rng.standard_normal(3) * d.trans_m_per_sqrt_m * np.sqrt(dist)
+        return T
+
+    def step(self) -> tuple[int, np.ndarray, SimKeyframe | None]:
+        """Advance one frame: (stamp_ns, T_l_c estimate, keyframe or None)."""
+        k = self.state.frame
+        if k >= len(self.traj):
+            raise StopIteration
+        T_w_c = self.traj.poses[k]
+        stamp = int(self.traj.stamps_ns[k])
+        if k > 0:
+            T_rel = relative(self.traj.poses[k - 1], T_w_c)
+            dt = (stamp - int(self.traj.stamps_ns[k - 1])) * 1e-9
+            self.state.T_l_c = self.state.T_l_c @ self._perturbed_motion(T_rel, dt)
+        self.state.frame += 1
+        kf = self._maybe_keyframe(stamp, T_w_c) if self._is_keyframe(stamp, T_w_c) else None
+        return stamp, self.state.T_l_c.copy(), kf
+
+    def _is_keyframe(self, stamp: int, T_w_c: np.ndarray) -> bool:
+        if self.last_kf is None:
+            return True
+        _, _, T_w_last, t_last = self.last_kf
+        T = relative(T_w_last, T_w_c)
+        return (
+            np.linalg.norm(T[:3, 3]) > self.kf_dist
+            or rotation_angle(T[:3, :3]) > self.kf_angle
+            or stamp - t_last > self.kf_max_dt_ns
+        )
+
+    def observe(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Visible landmark ids, their true camera-frame points and noisy pixels."""
+        P = self.world.points
+        c = T_w_c[:3, 3]
+        near = np.nonzero(np.abs(P - c).max(axis=1) < self.max_range)[0]
+        X_c = (P[near] - c) @ T_w_c[:3, :3]
+        uv, valid = self.cam.project(X_c, min_depth=0.2)
+        valid &= X_c[:, 2] < self.max_range
+        ids = near[valid]
+        X_c, uv = X_c[valid], uv[valid]
+        if len(ids) > self.max_features:
+            keep = self.rng.choice(len(ids), self.max_features, replace=False)
+            keep.sort()
+            ids, X_c, uv = ids[keep], X_c[keep], uv[keep]
+        if self.drift.pixel_sigma:
+            uv = uv + self.rng.normal(0.0, self.drift.pixel_sigma, uv.shape)
+        return ids, X_c, uv
+
+    def _maybe_keyframe(self, stamp: int, T_w_c: np.ndarray) -> SimKeyframe:
+        T_l_c = self.state.T_l_c.copy()
+        ids, X_c, uv = self.observe(T_w_c)
+        desc = self.world.descriptors[ids].copy()
+        if self.drift.bit_flip:
+            flips = self.rng.random((len(ids), 256)) < self.drift.bit_flip
+            desc ^= np.packbits(flips, axis=1)
+        kf_id = self.next_kf_id
+        self.next_kf_id += 1
+        mp_ids = np.empty(len(ids), np.int64)
+        new_idx = []
+        for j, lm in enumerate(ids.tolist()):
+            m = self.lm_to_mp.get(lm)
+            if m is None:
+                m = self.next_mp_id
+                self.next_mp_id += 1
+                self.lm_to_mp[lm] = m
+                new_idx.append(j)
+            mp_ids[j] = m
+        new_idx = np.array(new_idx, dtype=int)
+        # New map points sit where this keyframe's (scaled, noisy) depth puts them.
+        p_ref = X_c[new_idx] * self.state.scale
+        if self.drift.depth_sigma_rel and len(new_idx):
+            p_ref *= 1.0 + self.rng.normal(0, self.drift.depth_sigma_rel, (len(new_idx), 1))
+        new_mps = MapPoints(
+            mp_ids[new_idx].copy(),
+            np.full(len(new_idx), kf_id, np.int64),
+            p_ref.astype(np.float64),
+            self.world.descriptors[ids[new_idx]].copy(),
+        )
+        # Parent: the recent keyframe sharing the most landmarks (covisibility).
+        pred_id, T_pred, parent_id, T_par = -1, np.eye(4), -1, np.eye(4)
+        if self.last_kf is not None:
+            pred_id = self.last_kf[0]
+            T_pred = se3_inv(self.last_kf[1]) @ T_l_c
+            best, best_w = pred_id, -1
+            for oid, (lms, T_l_o) in self.recent.items():
+                w = len(np.intersect1d(lms, ids, assume_unique=True))
+                if w > best_w:
+                    best, best_w = oid, w
+            parent_id = best
+            T_par = se3_inv(self.recent[best][1]) @ T_l_c
+        kf = NewKeyframe(
+            id=kf_id,
+            stamp_ns=stamp,
+            T_l_kf=T_l_c,
+            pred_id=pred_id,
+            T_pred_kf=T_pred,
+            parent_id=parent_id,
+            T_par_kf=T_par,
+            keypoints=uv.astype(np.float32),
+            octaves=self.rng.integers(0, 4, len(ids)).astype(np.uint8),
+            descriptors=desc,
+            mp_ids=mp_ids,
+        )
+        self.recent[kf_id] = (ids, T_l_c)
+        while len(self.recent) > self.covis_window:
+            self.recent.popitem(last=False)
+        self.last_kf = (kf_id, T_l_c, T_w_c, stamp)
+        return SimKeyframe(kf, new_mps, ids)

