@@ -9,6 +9,7 @@ waits, so no orphan is left.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -57,8 +58,11 @@ def service_plan(settings: Settings) -> list[ServiceSpec]:
         ServiceSpec(
             "api",
             ["hivemap", "api"],
-            {**common, "HIVEMAP_API_PORT": str(settings.api_port),
-             "HIVEMAP_API_HOST": settings.api_host},
+            {
+                **common,
+                "HIVEMAP_API_PORT": str(settings.api_port),
+                "HIVEMAP_API_HOST": settings.api_host,
+            },
             settings.api_port,
         ),  # fmt: skip
     ]
@@ -122,19 +126,15 @@ class Stack:
     def stop(self, timeout: float = 10.0) -> None:
         for _, p in reversed(self.procs):
             if p.poll() is None:
-                try:
+                with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
         deadline = time.monotonic() + timeout
         for _, p in reversed(self.procs):
             try:
                 p.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                try:
+                with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
                 p.wait()
         self.procs.clear()
         if self.redis:

@@ -77,8 +77,10 @@ class PinholeRadTan:
         # Radius where d(r*(1+k1 r^2+k2 r^4))/dr = 0, i.e. 1 + 3 k1 r^2 + 5 k2 r^4 = 0.
         if self.k1 >= 0 and self.k2 >= 0:
             return np.inf
-        roots = np.roots([5.0 * self.k2, 3.0 * self.k1, 1.0]) if self.k2 != 0 else np.array(
-            [-1.0 / (3.0 * self.k1)]
+        roots = (
+            np.roots([5.0 * self.k2, 3.0 * self.k1, 1.0])
+            if self.k2 != 0
+            else np.array([-1.0 / (3.0 * self.k1)])
         )
         pos = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
         return float(min(pos)) * 0.95 if pos else np.inf
@@ -150,7 +152,9 @@ class PinholeRadTan:
             raise CalibrationError(f"{source}: camera_model {model!r} is not 'pinhole'")
         dmodel = data.get("distortion_model", "radial-tangential")
         if dmodel not in ("radial-tangential", "radtan", "plumb_bob"):
-            raise CalibrationError(f"{source}: distortion_model {dmodel!r} is not radial-tangential")
+            raise CalibrationError(
+                f"{source}: distortion_model {dmodel!r} is not radial-tangential"
+            )
         try:
             w, h = (int(v) for v in data["resolution"])
             fx, fy, cx, cy = (float(v) for v in data["intrinsics"])

@@ -9,7 +9,7 @@ Layout (prefix ``hm``; ``{a}`` agent id, ``{m}`` map id, ids are decimal):
     hm:agent:{a}:mps         SET   stored map point ids
     hm:agent:{a}:pose        STR   msgpack latest pose in its map frame
     hm:kf:{a}:{id}           HASH  map, stamp, pose (T_m_kf 16 f8), pred, parent, T_pred,
-                                   T_par, kp (f4 N x 2), oct (u1), desc (u1 N x 32), mpids (i8)
+                                   T_par, T_l (the agent's local pose), kp (f4 N x 2), oct (u1), desc (u1 N x 32), mpids (i8)
     hm:mp:{a}:{id}           HASH  map, ref (kf id of the same agent), p_ref (3 f8),
                                    pos (3 f8, map frame), desc (32 u1)
     hm:maps                  SET   map ids
@@ -89,6 +89,7 @@ class StoredKeyframe:
     octaves: np.ndarray | None = None
     descriptors: np.ndarray | None = None
     mp_ids: np.ndarray | None = None
+    T_l_kf: np.ndarray | None = None
 
 
 @dataclass
@@ -137,6 +138,8 @@ class Store:
             "T_pred": np.asarray(kf.T_pred_kf, "<f8").tobytes(),
             "T_par": np.asarray(kf.T_par_kf, "<f8").tobytes(),
         }
+        if kf.T_l_kf is not None:
+            fields["T_l"] = np.asarray(kf.T_l_kf, "<f8").tobytes()
         if kf.keypoints is not None:
             fields.update(
                 kp=np.asarray(kf.keypoints, "<f4").tobytes(),
@@ -212,7 +215,7 @@ class Store:
 
     def keyframes(self, agent: str, ids: list[int] | None = None, full: bool = False):
         ids = self.keyframe_ids(agent) if ids is None else ids
-        names = [b"map", b"stamp", b"pose", b"pred", b"parent", b"T_pred", b"T_par"]
+        names = [b"map", b"stamp", b"pose", b"pred", b"parent", b"T_pred", b"T_par", b"T_l"]
         if full:
             names += [b"kp", b"oct", b"desc", b"mpids"]
         p = self.r.pipeline(transaction=False)
@@ -225,12 +228,13 @@ class Store:
             kf = StoredKeyframe(
                 agent, i, vals[0].decode(), int(vals[1]), _f8(vals[2], (4, 4)),
                 int(vals[3]), int(vals[4]), _f8(vals[5], (4, 4)), _f8(vals[6], (4, 4)),
+                T_l_kf=_f8(vals[7], (4, 4)),
             )  # fmt: skip
-            if full and vals[7] is not None:
-                kf.keypoints = np.frombuffer(vals[7], "<f4").reshape(-1, 2).copy()
-                kf.octaves = np.frombuffer(vals[8], np.uint8).copy()
-                kf.descriptors = np.frombuffer(vals[9], np.uint8).reshape(-1, 32).copy()
-                kf.mp_ids = np.frombuffer(vals[10], "<i8").copy()
+            if full and vals[8] is not None:
+                kf.keypoints = np.frombuffer(vals[8], "<f4").reshape(-1, 2).copy()
+                kf.octaves = np.frombuffer(vals[9], np.uint8).copy()
+                kf.descriptors = np.frombuffer(vals[10], np.uint8).reshape(-1, 32).copy()
+                kf.mp_ids = np.frombuffer(vals[11], "<i8").copy()
             out.append(kf)
         return out
 
@@ -269,8 +273,10 @@ class Store:
         if not h:
             return None
         members = [m.decode() for m in self.r.smembers(k_map_kfs(map_id))]
-        agents = sorted({m.split(":", 1)[0] for m in members} | set(
-            a for a in h.get(b"agents", b"").decode().split(",") if a))
+        agents = sorted(
+            {m.split(":", 1)[0] for m in members}
+            | set(a for a in h.get(b"agents", b"").decode().split(",") if a)
+        )
         return {
             "map_id": map_id,
             "created_ns": int(h.get(b"created_ns", 0)),

@@ -47,9 +47,7 @@ def load_euroc_gt(seq_or_path: str | Path) -> Trajectory:
     # Timestamps are 19-digit integers; parse them as text to keep the nanoseconds.
     with open(path) as f:
         stamps = [int(ln.split(",")[0].split(".")[0]) for ln in f if ln[:1].isdigit()]
-    poses = np.stack(
-        [pose_from_tq(r[1:4], np.array([r[5], r[6], r[7], r[4]])) for r in data]
-    )
+    poses = np.stack([pose_from_tq(r[1:4], np.array([r[5], r[6], r[7], r[4]])) for r in data])
     return Trajectory(np.array(stamps, dtype=np.int64), poses)
 
 

@@ -10,6 +10,7 @@ on the sending side, configured by ``Settings.inject``.
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import json
 import logging
@@ -190,10 +191,8 @@ class Bus:
                     out.put_nowait(item)
                     return
                 except queue.Full:
-                    try:
+                    with contextlib.suppress(queue.Empty):
                         out.get_nowait()
-                    except queue.Empty:
-                        pass
 
         self._subs.append(self.session.declare_subscriber(key_expr, on_sample))
         return out
@@ -201,14 +200,10 @@ class Bus:
     def close(self) -> None:
         self.injector.close()
         for s in self._subs:
-            try:
+            with contextlib.suppress(Exception):
                 s.undeclare()
-            except Exception:
-                pass
         for p in self._pubs.values():
-            try:
+            with contextlib.suppress(Exception):
                 p.undeclare()
-            except Exception:
-                pass
         self._subs.clear()
         self._pubs.clear()

@@ -241,7 +241,7 @@ class SimAgent:
             pred_id = self.last_kf[0]
             T_pred = se3_inv(self.last_kf[1]) @ T_l_c
             best, best_w = pred_id, -1
-            for oid, (lms, T_l_o) in self.recent.items():
+            for oid, (lms, _T_l_o) in self.recent.items():
                 w = len(np.intersect1d(lms, ids, assume_unique=True))
                 if w > best_w:
                     best, best_w = oid, w

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import sys
 import threading
 from pathlib import Path
 
@@ -60,5 +59,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--flush-timeout", type=float, default=30.0)
     p.add_argument("--out", default="", help="write estimate/GT TUM and stats here")
     p.set_defaults(func=cmd_sim_agent)
-
-

@@ -8,7 +8,10 @@ covisibility parent when the predecessor is not on the server (CCM-SLAM §4.5).
 Relative translations are in the agent's local-map units, so they are scaled by
 the handler's Sim(3) S_m_l. A keyframe whose predecessor and parent are both
 missing waits until one of them arrives (it is not acknowledged meanwhile, so the
-agent resends it if the wait ends with the mapper being restarted).
+agent resends it). When both were lost for good (the agent's buffer overflowed,
+CCM-SLAM §4.2), waiting would orphan every later keyframe too; after
+``orphan_after_s`` the keyframe is anchored instead to the registered keyframe
+nearest in id, through the agent's own local-map poses.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ class IngestResult:
     ack_mp_ids: list[int] = field(default_factory=list)
     duplicates: int = 0
     pending_kfs: int = 0
+    orphans_anchored: int = 0
 
     @property
     def changed(self) -> bool:
@@ -48,8 +52,13 @@ class IngestResult:
 class AgentHandler:
     """One agent's view of its server map: T_m_kf of each keyframe and S_m_l."""
 
-    def __init__(self, agent: str, map_id: str, S_m_l: Sim3 | None = None) -> None:
+    def __init__(
+        self, agent: str, map_id: str, S_m_l: Sim3 | None = None, orphan_after_s: float = 5.0
+    ) -> None:
         self.agent = agent
+        self.orphan_after_s = orphan_after_s
+        self.local_poses: dict[int, np.ndarray] = {}  # kf id -> T_l_kf as the agent sent it
+        self.pending_since: dict[int, float] = {}
         self.map_id = map_id
         self.S_m_l = S_m_l or Sim3.identity()
         self.poses: dict[int, np.ndarray] = {}  # kf id -> T_m_kf
@@ -74,7 +83,7 @@ class AgentHandler:
             return self.S_m_l.transform_pose(T_l_kf)
         return None
 
-    def ingest(self, batch: KeyframeBatch) -> IngestResult:
+    def ingest(self, batch: KeyframeBatch, now: float = 0.0) -> IngestResult:
         res = IngestResult()
         for kf in sorted(batch.new_kfs, key=lambda k: k.id):
             if kf.id in self.poses:
@@ -82,10 +91,13 @@ class AgentHandler:
                 res.ack_kf_ids.append(kf.id)
             else:
                 self.pending_kfs[kf.id] = kf
-        self._drain_pending_kfs(res)
+                self.pending_since.setdefault(kf.id, now)
+        self._drain_pending_kfs(res, now)
         for upd in batch.kf_updates:
             if upd.id in self.poses:
-                T = self._place(upd.id, upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf, None)
+                T = self._place(
+                    upd.id, upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf, None
+                )
                 if T is not None:
                     self.poses[upd.id] = T
                     res.pose_updates.append((upd.id, T, upd))
@@ -102,22 +114,35 @@ class AgentHandler:
         res.pending_kfs = len(self.pending_kfs)
         return res
 
-    def _drain_pending_kfs(self, res: IngestResult) -> None:
+    def _anchor(self, kf: NewKeyframe) -> np.ndarray | None:
+        if not self.local_poses:
+            return None
+        ids = np.fromiter(self.local_poses, dtype=np.int64)
+        a = int(ids[np.argmin(np.abs(ids - kf.id))])
+        T_a_kf = np.linalg.inv(self.local_poses[a]) @ kf.T_l_kf
+        return self.poses[a] @ scale_translation(T_a_kf, self.S_m_l.s)
+
+    def _drain_pending_kfs(self, res: IngestResult, now: float) -> None:
         progress = True
         while progress and self.pending_kfs:
             progress = False
             for kid in sorted(self.pending_kfs):
                 kf = self.pending_kfs[kid]
                 T = self._place(kid, kf.pred_id, kf.T_pred_kf, kf.parent_id, kf.T_par_kf, kf.T_l_kf)
+                if T is None and now - self.pending_since.get(kid, now) > self.orphan_after_s:
+                    T = self._anchor(kf)
+                    res.orphans_anchored += T is not None
                 if T is None:
                     continue
                 del self.pending_kfs[kid]
+                self.pending_since.pop(kid, None)
                 self.poses[kid] = T
+                self.local_poses[kid] = kf.T_l_kf
                 res.keyframes.append(
                     StoredKeyframe(
                         self.agent, kid, self.map_id, kf.stamp_ns, T, kf.pred_id, kf.parent_id,
                         kf.T_pred_kf, kf.T_par_kf, kf.keypoints, kf.octaves, kf.descriptors,
-                        kf.mp_ids,
+                        kf.mp_ids, kf.T_l_kf,
                     )
                 )  # fmt: skip
                 res.ack_kf_ids.append(kid)
@@ -156,7 +181,7 @@ class AgentHandler:
         if not len(mps):
             return
         sel = np.array(
-            [i in self.mp_ids and int(r) in self.poses for i, r in zip(mps.ids, mps.ref_kf)],
+            [i in self.mp_ids and int(r) in self.poses for i, r in zip(mps.ids, mps.ref_kf, strict=False)],
             dtype=bool,
         )
         if not sel.any():

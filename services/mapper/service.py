@@ -57,6 +57,8 @@ class MapperService:
             h = AgentHandler(agent, info["map_id"], info["S_m_l"])
             for kf in self.store.keyframes(agent):
                 h.poses[kf.id] = kf.T_m_kf
+                if kf.T_l_kf is not None:
+                    h.local_poses[kf.id] = kf.T_l_kf
             h.mp_ids = set(self.store.mappoint_ids(agent))
             self.handlers[agent] = h
             log.info("resumed agent %s: %d keyframes, %d map points", agent, len(h.poses),
@@ -89,14 +91,14 @@ class MapperService:
                         extra={"key": key, "reason": reason})  # fmt: skip
             return None
         h = self.handler(batch.agent)
-        res = h.ingest(batch)
+        res = h.ingest(batch, time.monotonic())
         self._write(h, res)
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
                   np.array(res.ack_mp_ids, np.int64), h.kf_high, time.time_ns())  # fmt: skip
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
         now_ns = time.time_ns()
-        for kf in res.keyframes:
+        for _kf in res.keyframes:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
         STORED.labels(SERVICE, "keyframe").inc(len(res.keyframes))
         STORED.labels(SERVICE, "map_point").inc(len(res.mp_ids))

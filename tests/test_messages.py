@@ -1,0 +1,100 @@
+"""Wire messages: round trips, golden bytes, and rejection of bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from messages_fixtures import sample_ack, sample_batch, sample_pose
+
+from shared.messages import Ack, DecodeError, KeyframeBatch, MapChunk, PoseUpdate, packb
+
+GOLDEN = Path(__file__).parent / "golden"
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "cls"),
+    [("kf_batch_v1", sample_batch, KeyframeBatch), ("ack_v1", sample_ack, Ack),
+     ("pose_v1", sample_pose, PoseUpdate)],
+)  # fmt: skip
+def test_golden_bytes(name, make, cls):
+    """A change that breaks peers running the released protocol fails here."""
+    golden = (GOLDEN / f"{name}.bin").read_bytes()
+    assert make().encode() == golden
+    decoded = cls.decode(golden)
+    assert decoded.encode() == golden
+
+
+def test_batch_round_trip_values():
+    b = sample_batch()
+    d = KeyframeBatch.decode(b.encode())
+    kf, kf0 = d.new_kfs[0], b.new_kfs[0]
+    assert d.agent == "A" and d.seq == 4 and kf.id == 3
+    np.testing.assert_array_equal(kf.keypoints, kf0.keypoints)
+    np.testing.assert_array_equal(kf.descriptors, kf0.descriptors)
+    np.testing.assert_array_equal(kf.mp_ids, kf0.mp_ids)
+    np.testing.assert_array_equal(kf.T_l_kf, kf0.T_l_kf)
+    np.testing.assert_array_equal(d.new_mps.p_ref, b.new_mps.p_ref)
+    assert kf.stamp_ns == 1403636580863555584  # all 19 digits survive
+
+
+def test_map_chunk_round_trip():
+    rng = np.random.default_rng(1)
+    c = MapChunk(
+        "A", "map-A", 7, ["A", "B"], np.array([7, 2], np.int64),
+        np.stack([np.eye(4)] * 2), [rng.random((3, 2)).astype(np.float32)] * 2,
+        [np.zeros((3, 32), np.uint8)] * 2, [np.array([0, -1, 1], np.int64)] * 2,
+        ["A", "B"], np.array([1, 2], np.int64), rng.random((2, 3)),
+        np.zeros((2, 32), np.uint8),
+    )  # fmt: skip
+    d = MapChunk.decode(c.encode())
+    assert d.kf_agents == ["A", "B"]
+    np.testing.assert_array_equal(d.p_ref, c.p_ref)
+
+
+def _corruptions(good: bytes) -> list[bytes]:
+    d = msgpack.unpackb(good, raw=False)
+    wrong_version = dict(d, schema=d["schema"].split("/")[0] + "/99")
+    no_field = {k: v for k, v in d.items() if k != "agent"}
+    return [
+        b"",
+        b"\xff\x00garbage",
+        good[: len(good) // 2],
+        packb(wrong_version),
+        packb(no_field),
+        packb([1, 2, 3]),
+        packb({"schema": "hivemap.other/1"}),
+    ]
+
+
+@pytest.mark.parametrize("cls,make", [(KeyframeBatch, sample_batch), (Ack, sample_ack),
+                                      (PoseUpdate, sample_pose)])  # fmt: skip
+def test_bad_bytes_raise_decode_error(cls, make):
+    for bad in _corruptions(make().encode()):
+        with pytest.raises(DecodeError):
+            cls.decode(bad)
+
+
+def test_array_shape_lies_are_rejected():
+    b = sample_batch()
+    d = msgpack.unpackb(b.encode(), raw=False)
+    d["new_kfs"][0]["keypoints"]["shape"] = [6, 2]  # 5 keypoints claimed as 6
+    with pytest.raises(DecodeError, match="shape"):
+        KeyframeBatch.decode(packb(d))
+    d = msgpack.unpackb(b.encode(), raw=False)
+    d["new_kfs"][0]["descriptors"]["nd"] = "<f8"
+    with pytest.raises(DecodeError):
+        KeyframeBatch.decode(packb(d))
+    d = msgpack.unpackb(b.encode(), raw=False)
+    d["new_kfs"][0]["T_pred_kf"]["b"] = np.full((4, 4), np.nan).tobytes()
+    with pytest.raises(DecodeError, match="finite"):
+        KeyframeBatch.decode(packb(d))
+
+
+def test_wrong_version_names_versions():
+    d = msgpack.unpackb(sample_ack().encode(), raw=False)
+    d["schema"] = "hivemap.ack/2"
+    with pytest.raises(DecodeError, match="unsupported version"):
+        Ack.decode(packb(d))
