@@ -26,9 +26,6 @@ from shared.settings import Settings
 
 log = logging.getLogger(__name__)
 
-MAPPER_METRICS_PORT = 9101
-
-
 @dataclass
 class ServiceSpec:
     name: str
@@ -52,8 +49,8 @@ def service_plan(settings: Settings) -> list[ServiceSpec]:
         ServiceSpec(
             "mapper",
             ["hivemap", "mapper"],
-            {**common, "HIVEMAP_METRICS_PORT": str(MAPPER_METRICS_PORT)},
-            MAPPER_METRICS_PORT,
+            {**common, "HIVEMAP_METRICS_PORT": str(settings.mapper_metrics_port)},
+            settings.mapper_metrics_port,
         ),
         ServiceSpec(
             "api",
@@ -179,7 +176,7 @@ def _print_urls(stack: Stack) -> None:
     print(f"zenoh router : {stack.zenoh_endpoint}")
     print(f"redis        : {s.redis_url}")
     print(f"api          : http://{s.api_host}:{s.api_port}/  (viewer), /agents, /docs")
-    print(f"mapper       : http://127.0.0.1:{MAPPER_METRICS_PORT}/metrics")
+    print(f"mapper       : http://127.0.0.1:{s.mapper_metrics_port}/metrics")
     print("Ctrl-C stops everything.", flush=True)
 
 

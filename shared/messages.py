@@ -80,7 +80,8 @@ def _arr(v: Any, name: str, dtype: str, shape: tuple[int | None, ...]) -> np.nda
         raise DecodeError(f"{name}: expected an array")
     if v.dtype != np.dtype(dtype):
         raise DecodeError(f"{name}: dtype {v.dtype} != {dtype}")
-    if v.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, v.shape, strict=False)):
+    fits = all(s is None or s == d for s, d in zip(shape, v.shape, strict=False))
+    if v.ndim != len(shape) or not fits:
         raise DecodeError(f"{name}: shape {v.shape} does not match {shape}")
     return v
 

@@ -70,5 +70,7 @@ class Settings(BaseSettings):
     metrics_host: str = "127.0.0.1"
     # 0 = no HTTP metrics endpoint (tests read the registry directly).
     metrics_port: int = Field(0, ge=0, le=65535)
+    # Ports `hivemap up` gives the services that have no HTTP app of their own.
+    mapper_metrics_port: int = Field(9101, ge=1, le=65535)
     log_level: str = "INFO"
     log_json: bool = True

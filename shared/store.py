@@ -9,7 +9,8 @@ Layout (prefix ``hm``; ``{a}`` agent id, ``{m}`` map id, ids are decimal):
     hm:agent:{a}:mps         SET   stored map point ids
     hm:agent:{a}:pose        STR   msgpack latest pose in its map frame
     hm:kf:{a}:{id}           HASH  map, stamp, pose (T_m_kf 16 f8), pred, parent, T_pred,
-                                   T_par, T_l (the agent's local pose), kp (f4 N x 2), oct (u1), desc (u1 N x 32), mpids (i8)
+                                   T_par, T_l (the agent's local pose), kp (f4 N x 2),
+                                   oct (u1), desc (u1 N x 32), mpids (i8)
     hm:mp:{a}:{id}           HASH  map, ref (kf id of the same agent), p_ref (3 f8),
                                    pos (3 f8, map frame), desc (32 u1)
     hm:maps                  SET   map ids

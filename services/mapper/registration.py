@@ -180,10 +180,11 @@ class AgentHandler:
     def _update_mps(self, mps: MapPoints, res: IngestResult) -> None:
         if not len(mps):
             return
-        sel = np.array(
-            [i in self.mp_ids and int(r) in self.poses for i, r in zip(mps.ids, mps.ref_kf, strict=False)],
-            dtype=bool,
-        )
+        known = [
+            i in self.mp_ids and r in self.poses
+            for i, r in zip(mps.ids.tolist(), mps.ref_kf.tolist(), strict=True)
+        ]
+        sel = np.array(known, dtype=bool)
         if not sel.any():
             return
         res.upd_mp_ids = mps.ids[sel]

@@ -1,0 +1,119 @@
+"""`hivemap up` and `hivemap demo` as a user runs them: real processes, real ports."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from shared.redis_server import free_port
+
+HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(d.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            if c not in out:
+                out.add(c)
+                todo.append(c)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def _get(url: str, timeout: float = 2.0):
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def _env(api_port: int) -> dict[str, str]:
+    return {**os.environ, "HIVEMAP_API_PORT": str(api_port),
+            "HIVEMAP_MAPPER_METRICS_PORT": str(free_port())}  # fmt: skip
+
+
+def _stop(proc: subprocess.Popen) -> set[int]:
+    kids = _descendants(proc.pid)
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(30)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(p) for p in kids):
+        time.sleep(0.1)
+    return {p for p in kids if _alive(p)}
+
+
+def test_up_serves_and_sigterm_leaves_no_orphans():
+    port = free_port()
+    proc = subprocess.Popen([HIVEMAP, "up"], env=_env(port), stdout=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        health = None
+        while time.monotonic() < deadline and health is None:
+            try:
+                health = _get(f"http://127.0.0.1:{port}/health")
+            except OSError:
+                time.sleep(0.3)
+        assert health is not None, "api never answered"
+        names = {Path(Path(f"/proc/{p}/cmdline").read_text().split("\0")[0]).name
+                 for p in _descendants(proc.pid) if _alive(p)}  # fmt: skip
+        assert "redis-server" in names
+        assert len(_descendants(proc.pid)) >= 4  # redis, router, mapper, api
+    finally:
+        left = _stop(proc)
+    assert proc.returncode == 0
+    assert not left, f"orphans after SIGTERM: {left}"
+
+
+@pytest.mark.slow
+def test_demo_lists_three_moving_agents_within_30_s():
+    port = free_port()
+    proc = subprocess.Popen([HIVEMAP, "demo"], env=_env(port), stdout=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    try:
+        first: dict[str, list[float]] = {}
+        moved: set[str] = set()
+        while time.monotonic() - t0 < 30 and len(moved) < 3:
+            try:
+                agents = _get(f"http://127.0.0.1:{port}/agents")
+            except OSError:
+                time.sleep(0.5)
+                continue
+            for a in agents:
+                pose = a.get("last_pose")
+                if not pose:
+                    continue
+                p = pose["position"]
+                first.setdefault(a["agent"], p)
+                if sum((x - y) ** 2 for x, y in zip(p, first[a["agent"]], strict=True)) > 0.01**2:
+                    moved.add(a["agent"])
+            time.sleep(0.5)
+        elapsed = time.monotonic() - t0
+        assert len(moved) == 3, f"agents moving after {elapsed:.0f} s: {sorted(moved)}"
+        print(f"\nthree agents listed and moving {elapsed:.1f} s after `hivemap demo` started")
+    finally:
+        left = _stop(proc)
+    assert not left
