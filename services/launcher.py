@@ -26,6 +26,7 @@ from shared.settings import Settings
 
 log = logging.getLogger(__name__)
 
+
 @dataclass
 class ServiceSpec:
     name: str

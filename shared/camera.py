@@ -105,6 +105,16 @@ class PinholeRadTan:
         rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
+    def to_array(self) -> np.ndarray:
+        """The 10 numbers a keyframe message carries (``NewKeyframe.calib``)."""
+        return np.array([self.width, self.height, self.fx, self.fy, self.cx, self.cy,
+                         self.k1, self.k2, self.p1, self.p2], dtype=np.float64)  # fmt: skip
+
+    @staticmethod
+    def from_array(a: np.ndarray) -> PinholeRadTan:
+        a = [float(x) for x in a]
+        return PinholeRadTan(int(a[0]), int(a[1]), *a[2:])
+
     # -- loading ---------------------------------------------------------------
     @staticmethod
     def euroc_cam0() -> PinholeRadTan:

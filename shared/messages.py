@@ -93,6 +93,18 @@ def _pose(v: Any, name: str) -> np.ndarray:
     return T
 
 
+def _calib(v: Any) -> np.ndarray:
+    c = _arr(v, "calib", "<f8", (10,))
+    if not np.all(np.isfinite(c)) or c[0] <= 0 or c[1] <= 0 or c[2] <= 0 or c[3] <= 0:
+        raise DecodeError("calib: needs positive size and focal lengths")
+    return c
+
+
+def _opt_ids(d: dict, key: str) -> np.ndarray | None:
+    v = d.get(key)
+    return None if v is None else _arr(v, key, "<i8", (None,))
+
+
 def _int(v: Any, name: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise DecodeError(f"{name}: expected an integer")
@@ -130,9 +142,14 @@ class NewKeyframe:
     octaves: np.ndarray  # (N,) uint8 pyramid level
     descriptors: np.ndarray  # (N, 32) uint8, 256-bit ORB
     mp_ids: np.ndarray  # (N,) int64 map point of each keypoint, -1 none
+    # Optional (added within v1): w, h, fx, fy, cx, cy, k1, k2, p1, p2 of the camera.
+    calib: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        if d["calib"] is None:
+            del d["calib"]
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> NewKeyframe:
@@ -152,6 +169,7 @@ class NewKeyframe:
             octaves=_arr(_get(d, "octaves"), "octaves", "|u1", (n,)),
             descriptors=_arr(_get(d, "descriptors"), "descriptors", "|u1", (n, 32)),
             mp_ids=_arr(_get(d, "mp_ids"), "mp_ids", "<i8", (n,)),
+            calib=None if d.get("calib") is None else _calib(d["calib"]),
         )
 
 
@@ -291,16 +309,24 @@ class Ack:
     mp_ids: np.ndarray
     kf_high: int
     sent_ns: int
+    # Optional (added within v1): keyframes the server holds because their predecessor
+    # and parent are missing, and those missing ones, so the agent resends exactly
+    # what blocks registration instead of waiting for its timeout.
+    held_kf_ids: np.ndarray | None = None
+    missing_kf_ids: np.ndarray | None = None
 
     def encode(self) -> bytes:
-        return packb(
-            {
-                "schema": self.SCHEMA, "agent": self.agent, "map_id": self.map_id,
-                "kf_ids": np.asarray(self.kf_ids, np.int64),
-                "mp_ids": np.asarray(self.mp_ids, np.int64),
-                "kf_high": self.kf_high, "sent_ns": self.sent_ns,
-            }
-        )  # fmt: skip
+        d = {
+            "schema": self.SCHEMA, "agent": self.agent, "map_id": self.map_id,
+            "kf_ids": np.asarray(self.kf_ids, np.int64),
+            "mp_ids": np.asarray(self.mp_ids, np.int64),
+            "kf_high": self.kf_high, "sent_ns": self.sent_ns,
+        }  # fmt: skip
+        if self.held_kf_ids is not None and len(self.held_kf_ids):
+            d["held_kf_ids"] = np.asarray(self.held_kf_ids, np.int64)
+        if self.missing_kf_ids is not None and len(self.missing_kf_ids):
+            d["missing_kf_ids"] = np.asarray(self.missing_kf_ids, np.int64)
+        return packb(d)
 
     @staticmethod
     def decode(data: bytes) -> Ack:
@@ -312,6 +338,8 @@ class Ack:
             mp_ids=_arr(_get(d, "mp_ids"), "mp_ids", "<i8", (None,)),
             kf_high=_int(_get(d, "kf_high"), "kf_high"),
             sent_ns=_int(_get(d, "sent_ns"), "sent_ns"),
+            held_kf_ids=_opt_ids(d, "held_kf_ids"),
+            missing_kf_ids=_opt_ids(d, "missing_kf_ids"),
         )
 
 

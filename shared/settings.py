@@ -52,7 +52,12 @@ class CommSettings(BaseModel):
 class MapperSettings(BaseModel):
     feedback_rate_hz: float = Field(2.0, gt=0)
     feedback_k: int = Field(5, ge=0)
-    ack_rate_hz: float = Field(20.0, gt=0)
+    refine_poses: bool = True
+    scale_correction: bool = True
+    kappa: float = Field(0.05, gt=0, le=1)
+    fuse: bool = True
+    redundancy: bool = True
+    redundancy_ratio: float = Field(0.98, gt=0, le=1)
 
 
 class Settings(BaseSettings):

@@ -144,11 +144,21 @@ class CommModule:
             self.mps.pop(i, None)
             self.sent_mps.pop(i, None)
             self.queued_mps.discard(i)
+        held = set() if ack.held_kf_ids is None else set(ack.held_kf_ids.tolist())
+        if held:
+            # Received and waiting on the server: not lost, so no timeout resend.
+            for i in held:
+                if i in self.sent_kfs:
+                    self.sent_kfs[i].t = now
+        if ack.missing_kf_ids is not None:
+            for i in ack.missing_kf_ids.tolist():
+                if i in self.kfs and i not in self.queued_kfs:
+                    self._requeue_kf(i, "nack")
         if newest_seq >= 0:
             # Gap evidence: anything sent in an earlier message than an acked keyframe,
             # yet not acked itself, was lost (messages are processed in order).
             for i, s in list(self.sent_kfs.items()):
-                if s.seq < newest_seq:
+                if s.seq < newest_seq and i not in held:
                     self._requeue_kf(i, "gap")
             for i, s in list(self.sent_mps.items()):
                 if s.seq < newest_seq:

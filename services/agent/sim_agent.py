@@ -259,6 +259,7 @@ class SimAgent:
             octaves=self.rng.integers(0, 4, len(ids)).astype(np.uint8),
             descriptors=desc,
             mp_ids=mp_ids,
+            calib=self.cam.to_array(),
         )
         self.recent[kf_id] = (ids, T_l_c)
         while len(self.recent) > self.covis_window:

@@ -1,17 +1,18 @@
-"""Registration of an agent's keyframes and map points into its server map.
+"""Agent handlers: registration of an agent's keyframes and map points into a server map.
 
-Pure bookkeeping and geometry, no transport or storage: the service feeds
-decoded batches in and writes out what :meth:`AgentHandler.ingest` returns.
+Pure bookkeeping and geometry, no transport or storage: the map actor feeds decoded
+batches in and writes out what :meth:`AgentHandler.ingest` reports as changed.
 
-A keyframe is placed by chaining its pose relative to its predecessor, or to its
-covisibility parent when the predecessor is not on the server (CCM-SLAM §4.5).
-Relative translations are in the agent's local-map units, so they are scaled by
-the handler's Sim(3) S_m_l. A keyframe whose predecessor and parent are both
-missing waits until one of them arrives (it is not acknowledged meanwhile, so the
-agent resends it). When both were lost for good (the agent's buffer overflowed,
-CCM-SLAM §4.2), waiting would orphan every later keyframe too; after
-``orphan_after_s`` the keyframe is anchored instead to the registered keyframe
-nearest in id, through the agent's own local-map poses.
+Registration (CCM-SLAM §4.4-4.5, CSfM §III): a keyframe is placed by chaining its
+pose relative to its predecessor, or to its covisibility parent when the predecessor
+is not on the server. Relative translations are in the agent's local-map units, so
+they are scaled by the handler's Sim(3) scale ``S_m_l.s`` and by the VO scale
+correction ``lam`` (CSfM eq. 2-4). The chained pose is then refined against the map
+points the keyframe observes; the ratio of refined to odometry translation updates
+``lam`` with smoothing ``kappa``. A keyframe whose predecessor and parent are both
+missing waits (unacknowledged, so the agent resends it); after ``orphan_after_s``
+it is anchored to the registered keyframe nearest in id through the agent's
+local-map poses, so a buffer overflow on the agent does not orphan the rest.
 """
 
 from __future__ import annotations
@@ -20,179 +21,314 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.geometry import Sim3, scale_translation, transform_points
-from shared.messages import KeyframeBatch, KeyframeUpdate, MapPoints, NewKeyframe
-from shared.store import StoredKeyframe
+from shared.camera import PinholeRadTan
+from shared.geometry import Sim3, scale_translation, se3_inv, transform_points
+from shared.messages import KeyframeBatch, MapPoints, NewKeyframe
+
+from .fusion import fuse_by_projection
+from .pose_refine import refine_pose
+from .server_map import ServerKeyframe, ServerMap, ServerMapPoint, gid
+
+
+@dataclass
+class MapperParams:
+    refine_poses: bool = True
+    scale_correction: bool = True
+    kappa: float = 0.05
+    min_scale_baseline: float = 0.05  # map units of odometry translation to learn scale from
+    fuse: bool = True
+    orphan_after_s: float = 5.0
 
 
 @dataclass
 class IngestResult:
-    keyframes: list[StoredKeyframe] = field(default_factory=list)
-    pose_updates: list[tuple[int, np.ndarray, KeyframeUpdate]] = field(default_factory=list)
-    mp_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    mp_ref: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    mp_p_ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    mp_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    mp_desc: np.ndarray = field(default_factory=lambda: np.zeros((0, 32), np.uint8))
-    upd_mp_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    upd_mp_ref: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    upd_mp_p_ref: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    upd_mp_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    new_kfs: list[int] = field(default_factory=list)  # gids
+    sources: dict[int, NewKeyframe] = field(default_factory=dict)  # gid -> message part
+    new_mps: list[int] = field(default_factory=list)
+    changed_kfs: set[int] = field(default_factory=set)  # association or pose changed
+    changed_mps: set[int] = field(default_factory=set)
+    removed_mps: set[int] = field(default_factory=set)
+    aliases: dict[int, int] = field(default_factory=dict)
     ack_kf_ids: list[int] = field(default_factory=list)
     ack_mp_ids: list[int] = field(default_factory=list)
     duplicates: int = 0
     pending_kfs: int = 0
     orphans_anchored: int = 0
+    refined: int = 0
+    fused: int = 0
 
     @property
     def changed(self) -> bool:
-        return bool(self.keyframes or self.pose_updates or len(self.mp_ids) or len(self.upd_mp_ids))
+        return bool(self.new_kfs or self.new_mps or self.changed_kfs or self.changed_mps
+                    or self.removed_mps)  # fmt: skip
 
 
 class AgentHandler:
-    """One agent's view of its server map: T_m_kf of each keyframe and S_m_l."""
+    """One agent's link to its server map: S_m_l, the scale correction and the
+    bookkeeping of what arrived."""
 
     def __init__(
-        self, agent: str, map_id: str, S_m_l: Sim3 | None = None, orphan_after_s: float = 5.0
+        self,
+        agent: str,
+        index: int,
+        smap: ServerMap,
+        S_m_l: Sim3 | None = None,
+        params: MapperParams | None = None,
+        lam: float = 1.0,
     ) -> None:
         self.agent = agent
-        self.orphan_after_s = orphan_after_s
-        self.local_poses: dict[int, np.ndarray] = {}  # kf id -> T_l_kf as the agent sent it
-        self.pending_since: dict[int, float] = {}
-        self.map_id = map_id
+        self.index = index
+        self.smap = smap
         self.S_m_l = S_m_l or Sim3.identity()
-        self.poses: dict[int, np.ndarray] = {}  # kf id -> T_m_kf
-        self.mp_ids: set[int] = set()
+        self.params = params or MapperParams()
+        self.lam = lam
+        self.camera = PinholeRadTan.euroc_cam0()
+        self.local_poses: dict[int, np.ndarray] = {}  # kf id -> T_l_kf as sent
+        self.removed: dict[int, tuple[int, np.ndarray]] = {}  # culled kf id -> (gid, T_g_kf)
+        self.aliases: dict[int, int] = {}  # fused point gid -> surviving gid
         self.pending_kfs: dict[int, NewKeyframe] = {}
+        self.pending_since: dict[int, float] = {}
         self.pending_mps: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
+        self.waiting_obs: dict[int, list[tuple[int, int]]] = {}  # mp gid -> [(kf gid, kp)]
         self.kf_ref = -1
+        self.latest_kf = -1
+        self.first_kf = -1
+
+    @property
+    def map_id(self) -> str:
+        return self.smap.map_id
+
+    @property
+    def scale(self) -> float:
+        """Map units per local-map unit for new data."""
+        return self.S_m_l.s * self.lam
+
+    def kf_gid(self, kf_id: int) -> int:
+        return gid(self.index, kf_id)
+
+    def mp_gid(self, mp_id: int) -> int:
+        g = gid(self.index, mp_id)
+        while g in self.aliases:
+            g = self.aliases[g]
+        return g
+
+    def kf_pose(self, kf_id: int) -> np.ndarray | None:
+        kf = self.smap.kfs.get(self.kf_gid(kf_id))
+        if kf is not None:
+            return kf.T_m_kf
+        r = self.removed.get(kf_id)
+        if r is not None and r[0] in self.smap.kfs:
+            return self.smap.kfs[r[0]].T_m_kf @ r[1]
+        return None
+
+    def has_kf(self, kf_id: int) -> bool:
+        return self.kf_gid(kf_id) in self.smap.kfs or kf_id in self.removed
+
+    def blocked(self) -> tuple[list[int], list[int]]:
+        """(held, missing): pending keyframes and the ids they wait for."""
+        held = sorted(self.pending_kfs)
+        missing = set()
+        for kf in self.pending_kfs.values():
+            for i in (kf.pred_id, kf.parent_id):
+                if i >= 0 and not self.has_kf(i) and i not in self.pending_kfs:
+                    missing.add(i)
+        return held, sorted(missing)
 
     @property
     def kf_high(self) -> int:
-        return max(self.poses, default=-1)
+        return self.latest_kf
 
-    def _place(self, kf_id: int, pred_id: int, T_pred: np.ndarray, par_id: int, T_par: np.ndarray,
-               T_l_kf: np.ndarray | None) -> np.ndarray | None:  # fmt: skip
-        s = self.S_m_l.s
-        if pred_id in self.poses:
-            return self.poses[pred_id] @ scale_translation(T_pred, s)
-        if par_id in self.poses:
-            return self.poses[par_id] @ scale_translation(T_par, s)
-        if pred_id < 0 and par_id < 0 and T_l_kf is not None and not self.poses:
-            # The agent's first keyframe seeds the map through S_m_l.
-            return self.S_m_l.transform_pose(T_l_kf)
-        return None
-
+    # --- ingest ---------------------------------------------------------------------------
     def ingest(self, batch: KeyframeBatch, now: float = 0.0) -> IngestResult:
         res = IngestResult()
         for kf in sorted(batch.new_kfs, key=lambda k: k.id):
-            if kf.id in self.poses:
+            if self.has_kf(kf.id):
                 res.duplicates += 1
                 res.ack_kf_ids.append(kf.id)
             else:
                 self.pending_kfs[kf.id] = kf
                 self.pending_since.setdefault(kf.id, now)
-        self._drain_pending_kfs(res, now)
+        self._queue_mps(batch.new_mps, res)
+        self._drain(res, now)
+        self._attach_ready_mps(res)  # points whose keyframe arrived in an earlier batch
         for upd in batch.kf_updates:
-            if upd.id in self.poses:
-                T = self._place(
-                    upd.id, upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf, None
-                )
-                if T is not None:
-                    self.poses[upd.id] = T
-                    res.pose_updates.append((upd.id, T, upd))
+            g = self.kf_gid(upd.id)
+            if g in self.smap.kfs:
+                if not self.params.refine_poses:
+                    T = self._chain(upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf)
+                    if T is not None:
+                        self.smap.kfs[g].T_m_kf = T
+                        res.changed_kfs.add(g)
+                if upd.mp_ids is not None:
+                    self._associate(self.smap.kfs[g], upd.mp_ids, res)
             elif upd.id in self.pending_kfs:
                 kf = self.pending_kfs[upd.id]
                 kf.pred_id, kf.T_pred_kf = upd.pred_id, upd.T_pred_kf
                 kf.parent_id, kf.T_par_kf = upd.parent_id, upd.T_par_kf
                 if upd.mp_ids is not None:
                     kf.mp_ids = upd.mp_ids
-        self._ingest_mps(batch.new_mps, res)
-        self._update_mps(batch.mp_updates, res)
-        if batch.kf_ref in self.poses:
+        if not self.params.refine_poses:
+            self._update_mps(batch.mp_updates, res)
+        if self.has_kf(batch.kf_ref):
             self.kf_ref = batch.kf_ref
         res.pending_kfs = len(self.pending_kfs)
         return res
 
-    def _anchor(self, kf: NewKeyframe) -> np.ndarray | None:
-        if not self.local_poses:
-            return None
-        ids = np.fromiter(self.local_poses, dtype=np.int64)
-        a = int(ids[np.argmin(np.abs(ids - kf.id))])
-        T_a_kf = np.linalg.inv(self.local_poses[a]) @ kf.T_l_kf
-        return self.poses[a] @ scale_translation(T_a_kf, self.S_m_l.s)
+    def _queue_mps(self, mps: MapPoints, res: IngestResult) -> None:
+        for j, i in enumerate(mps.ids.tolist()):
+            if gid(self.index, i) in self.smap.mps or gid(self.index, i) in self.aliases:
+                res.ack_mp_ids.append(i)
+            else:
+                self.pending_mps[i] = (int(mps.ref_kf[j]), mps.p_ref[j], mps.descriptors[j])
 
-    def _drain_pending_kfs(self, res: IngestResult, now: float) -> None:
+    def _chain(self, pred_id, T_pred, par_id, T_par) -> np.ndarray | None:
+        s = self.scale
+        T = self.kf_pose(pred_id) if pred_id >= 0 else None
+        if T is not None:
+            return T @ scale_translation(T_pred, s)
+        T = self.kf_pose(par_id) if par_id >= 0 else None
+        if T is not None:
+            return T @ scale_translation(T_par, s)
+        return None
+
+    def _anchor(self, kf: NewKeyframe) -> np.ndarray | None:
+        ids = [i for i in self.local_poses if self.kf_pose(i) is not None]
+        if not ids:
+            return None
+        a = min(ids, key=lambda i: abs(i - kf.id))
+        T_a_kf = se3_inv(self.local_poses[a]) @ kf.T_l_kf
+        return self.kf_pose(a) @ scale_translation(T_a_kf, self.scale)
+
+    def _drain(self, res: IngestResult, now: float) -> None:
         progress = True
         while progress and self.pending_kfs:
             progress = False
             for kid in sorted(self.pending_kfs):
                 kf = self.pending_kfs[kid]
-                T = self._place(kid, kf.pred_id, kf.T_pred_kf, kf.parent_id, kf.T_par_kf, kf.T_l_kf)
-                if T is None and now - self.pending_since.get(kid, now) > self.orphan_after_s:
+                first = kf.pred_id < 0 and kf.parent_id < 0 and not self.local_poses
+                if first:
+                    T = self.S_m_l.transform_pose(kf.T_l_kf)
+                else:
+                    T = self._chain(kf.pred_id, kf.T_pred_kf, kf.parent_id, kf.T_par_kf)
+                if (
+                    T is None
+                    and now - self.pending_since.get(kid, now) > self.params.orphan_after_s
+                ):
                     T = self._anchor(kf)
                     res.orphans_anchored += T is not None
                 if T is None:
                     continue
                 del self.pending_kfs[kid]
                 self.pending_since.pop(kid, None)
-                self.poses[kid] = T
-                self.local_poses[kid] = kf.T_l_kf
-                res.keyframes.append(
-                    StoredKeyframe(
-                        self.agent, kid, self.map_id, kf.stamp_ns, T, kf.pred_id, kf.parent_id,
-                        kf.T_pred_kf, kf.T_par_kf, kf.keypoints, kf.octaves, kf.descriptors,
-                        kf.mp_ids, kf.T_l_kf,
-                    )
-                )  # fmt: skip
-                res.ack_kf_ids.append(kid)
+                self._insert(kf, T, res)
                 progress = True
 
-    def _mp_positions(self, ref: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
-        out = np.empty((len(ref), 3))
-        s = self.S_m_l.s
-        for r in np.unique(ref):
-            sel = ref == r
-            out[sel] = transform_points(self.poses[int(r)], s * p_ref[sel])
-        return out
+    def _insert(self, kf: NewKeyframe, T_init: np.ndarray, res: IngestResult) -> None:
+        if kf.calib is not None:
+            self.camera = PinholeRadTan.from_array(kf.calib)
+        cam = self.camera
+        g = self.kf_gid(kf.id)
+        xy = cam.undistort_points(kf.keypoints).astype(np.float64)
+        mp = np.full(len(kf.mp_ids), -1, np.int64)
+        has = kf.mp_ids >= 0
+        mp[has] = [self.mp_gid(int(i)) for i in kf.mp_ids[has]]
+        known = np.array([m in self.smap.mps for m in mp.tolist()], dtype=bool) & has
+        T = T_init
+        if self.params.refine_poses and known.sum() >= 20:
+            P = np.array([self.smap.mps[m].pos for m in mp[known].tolist()])
+            r = refine_pose(T_init, xy[known], P, cam.fx)
+            if r.accepted:
+                T = r.T_m_c
+                res.refined += 1
+                # Observations the refined pose cannot explain are not attached.
+                idx = np.nonzero(known)[0]
+                known[idx[~r.inliers]] = False
+            if self.params.scale_correction and kf.pred_id >= 0:
+                T_pred = self.kf_pose(kf.pred_id)
+                t_hat = np.linalg.norm(kf.T_pred_kf[:3, 3]) * self.S_m_l.s
+                if (
+                    T_pred is not None
+                    and r.accepted
+                    and t_hat * self.lam > self.params.min_scale_baseline
+                ):
+                    lam_hat = np.linalg.norm((se3_inv(T_pred) @ T)[:3, 3]) / t_hat
+                    self.lam += self.params.kappa * (lam_hat - self.lam)
+        waiting = np.nonzero(has & ~known)[0]
+        mp_known = np.where(known, mp, -1)
+        skf = ServerKeyframe(
+            g, self.agent, kf.id, kf.stamp_ns, T, kf.T_l_kf, kf.keypoints, xy, kf.octaves,
+            kf.descriptors, mp_known,
+        )  # fmt: skip
+        self.smap.add_keyframe(skf)
+        for j in waiting.tolist():
+            if mp[j] not in self.smap.mps:
+                self.waiting_obs.setdefault(int(mp[j]), []).append((g, j))
+        self.local_poses[kf.id] = kf.T_l_kf
+        self.latest_kf = max(self.latest_kf, kf.id)
+        if self.first_kf < 0:
+            self.first_kf = kf.id
+        res.new_kfs.append(g)
+        res.sources[g] = kf
+        res.ack_kf_ids.append(kf.id)
+        self._attach_ready_mps(res)
+        if self.params.fuse:
+            n, changed, removed, aliases = fuse_by_projection(self.smap, skf, cam)
+            res.fused += n
+            res.changed_kfs |= changed
+            res.removed_mps |= removed
+            res.aliases.update(aliases)
+            self.aliases.update(aliases)
 
-    def _ingest_mps(self, mps: MapPoints, res: IngestResult) -> None:
-        for j, i in enumerate(mps.ids.tolist()):
-            if i in self.mp_ids:
-                res.ack_mp_ids.append(i)
-            else:
-                self.pending_mps[i] = (int(mps.ref_kf[j]), mps.p_ref[j], mps.descriptors[j])
-        ready = [i for i, (r, _, _) in self.pending_mps.items() if r in self.poses]
-        if not ready:
+    def _attach_ready_mps(self, res: IngestResult) -> None:
+        ready = [i for i, (r, _, _) in self.pending_mps.items() if self.kf_pose(r) is not None]
+        for i in sorted(ready):
+            ref, p_ref, desc = self.pending_mps.pop(i)
+            g = gid(self.index, i)
+            T_ref = self.kf_pose(ref)
+            pos = transform_points(T_ref, self.scale * np.asarray(p_ref)[None])[0]
+            ref_g = self.kf_gid(ref)
+            if ref_g not in self.smap.kfs:
+                ref_g = self.removed[ref][0]
+            self.smap.add_map_point(ServerMapPoint(g, pos, np.asarray(desc, np.uint8), ref_g))
+            res.new_mps.append(g)
+            res.ack_mp_ids.append(i)
+            for kf_g, j in self.waiting_obs.pop(g, []):
+                if self.smap.add_observation(kf_g, j, g):
+                    res.changed_kfs.add(kf_g)
+
+    def _associate(self, skf: ServerKeyframe, mp_ids: np.ndarray, res: IngestResult) -> None:
+        if len(mp_ids) != len(skf.mp):
             return
-        ready.sort()
-        ref = np.array([self.pending_mps[i][0] for i in ready], np.int64)
-        p_ref = np.array([self.pending_mps[i][1] for i in ready], np.float64).reshape(-1, 3)
-        desc = np.array([self.pending_mps[i][2] for i in ready], np.uint8).reshape(-1, 32)
-        for i in ready:
-            del self.pending_mps[i]
-        self.mp_ids.update(ready)
-        res.mp_ids = np.array(ready, np.int64)
-        res.mp_ref, res.mp_p_ref, res.mp_desc = ref, p_ref, desc
-        res.mp_pos = self._mp_positions(ref, p_ref)
-        res.ack_mp_ids.extend(ready)
+        for j in np.nonzero(mp_ids >= 0)[0].tolist():
+            g = self.mp_gid(int(mp_ids[j]))
+            if skf.mp[j] == g:
+                continue
+            if g in self.smap.mps:
+                if self.smap.add_observation(skf.gid, j, g):
+                    res.changed_kfs.add(skf.gid)
+            else:
+                self.waiting_obs.setdefault(g, []).append((skf.gid, j))
 
     def _update_mps(self, mps: MapPoints, res: IngestResult) -> None:
-        if not len(mps):
-            return
-        known = [
-            i in self.mp_ids and r in self.poses
-            for i, r in zip(mps.ids.tolist(), mps.ref_kf.tolist(), strict=True)
-        ]
-        sel = np.array(known, dtype=bool)
-        if not sel.any():
-            return
-        res.upd_mp_ids = mps.ids[sel]
-        res.upd_mp_ref = mps.ref_kf[sel]
-        res.upd_mp_p_ref = mps.p_ref[sel]
-        res.upd_mp_pos = self._mp_positions(res.upd_mp_ref, res.upd_mp_p_ref)
+        for j, i in enumerate(mps.ids.tolist()):
+            g = gid(self.index, i)
+            p = self.smap.mps.get(g)
+            T_ref = self.kf_pose(int(mps.ref_kf[j]))
+            if p is None or T_ref is None:
+                continue
+            p.pos = transform_points(T_ref, self.scale * mps.p_ref[j][None])[0]
+            res.changed_mps.add(g)
 
     def pose_of(self, kf_ref: int, T_ref_c: np.ndarray) -> np.ndarray | None:
         """A live camera pose, given relative to one of the agent's keyframes."""
-        T = self.poses.get(kf_ref)
-        return None if T is None else T @ scale_translation(T_ref_c, self.S_m_l.s)
+        T = self.kf_pose(kf_ref)
+        return None if T is None else T @ scale_translation(T_ref_c, self.scale)
+
+    def on_removed(self, kf: ServerKeyframe) -> None:
+        """The map culled one of this agent's keyframes: keep chaining through it."""
+        par = kf.parent if kf.parent in self.smap.kfs else None
+        if par is None:
+            cands = [g for g in self.smap.kfs if self.smap.kfs[g].agent == self.agent]
+            par = min(cands, key=lambda g: abs((g & ((1 << 40) - 1)) - kf.id), default=None)
+        if par is not None:
+            self.removed[kf.id] = (par, se3_inv(self.smap.kfs[par].T_m_kf) @ kf.T_m_kf)

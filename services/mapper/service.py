@@ -1,17 +1,26 @@
 """The mapper service: Zenoh in, Redis and acks out.
 
-Zenoh callbacks only enqueue. One worker drains keyframe batches in arrival order,
-registers them through the agent's handler, writes the result to Redis in one
-transaction and only then acknowledges, so an ack always means "stored". A second
-worker turns live poses into map-frame poses for the API. Bad bytes are counted in
-``hivemap_messages_rejected_total``, logged, and dropped; nothing already stored is
-touched. On start the handlers are rebuilt from Redis, so a killed mapper resumes.
+Concurrency: one actor per server map. A dispatcher thread decodes every keyframe
+batch (so garbage costs one decode and never reaches a map) and queues it on the
+actor of the agent's map; each actor thread owns its map and applies batches one at
+a time, so the map's invariants hold without fine-grained locks. We chose this over
+CSfM's keyframe-neighbourhood locks (§V) because in CPython the GIL already
+serializes the Python-level graph updates: neighbourhood locks would add lock
+traffic and deadlock risk without buying parallel CPU, while actors still overlap
+where time is really spent outside the GIL (Redis round trips, OpenCV, numpy) and
+keep agents on different maps fully independent. An agent that floods or stalls
+only fills its own map's queue.
+
+Every batch is stored in one MULTI/EXEC transaction before its ack is sent, so an
+ack always means "stored". On start, maps and handlers are rebuilt from Redis.
+Idle actors run redundant-keyframe rejection (CCM-SLAM §4.6) and send feedback.
 """
 
 from __future__ import annotations
 
 import logging
 import queue
+import random
 import threading
 import time
 
@@ -26,7 +35,12 @@ from shared.settings import Settings
 from shared.store import Store, connect
 from shared.transport import Bus, Received, open_session
 
-from .registration import AgentHandler, IngestResult
+from . import persist
+from .feedback import build_chunk
+from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
+from .redundancy import find_redundant
+from .registration import AgentHandler, MapperParams
+from .server_map import ServerMap
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -36,49 +50,127 @@ def initial_map_id(agent: str) -> str:
     return f"map-{agent}"
 
 
+def params_from(settings: Settings) -> MapperParams:
+    m = settings.mapper
+    return MapperParams(refine_poses=m.refine_poses, scale_correction=m.scale_correction,
+                        kappa=m.kappa, fuse=m.fuse)  # fmt: skip
+
+
+class MapActor:
+    """Owns one server map: applies batches in order, stores, acks; when idle, culls
+    redundant keyframes and sends feedback."""
+
+    def __init__(self, svc: MapperService, smap: ServerMap) -> None:
+        self.svc = svc
+        self.smap = smap
+        self.q: queue.Queue = queue.Queue()
+        self.lock = threading.RLock()
+        self.rng = random.Random(smap.map_id)
+        self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _run(self) -> None:
+        svc = self.svc
+        while not svc._stop.is_set():
+            try:
+                h, batch, recv_ns, key = self.q.get(timeout=0.05)
+            except queue.Empty:
+                self._idle()
+                continue
+            try:
+                with self.lock:
+                    svc.apply(h, batch, recv_ns)
+            except redis.RedisError:
+                log.exception("redis write failed; batch not acknowledged")
+            except Exception:
+                REJECTED.labels(SERVICE, key, "internal").inc()
+                log.exception("keyframe batch failed", extra={"agent": h.agent})
+            QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
+            self._feedback()
+
+    def _idle(self) -> None:
+        if self.svc.settings.mapper.redundancy:
+            try:
+                with self.lock:
+                    self.svc.cull(self.smap, self.rng)
+            except Exception:
+                log.exception("keyframe rejection failed")
+        self._feedback()
+
+    def _feedback(self) -> None:
+        try:
+            self.svc.send_feedback(self.smap)
+        except Exception:
+            log.exception("feedback failed")
+
+
 class MapperService:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
+        self.params = params_from(settings)
         self.store = Store(connect(settings.redis_url))
         self.handlers: dict[str, AgentHandler] = {}
+        self.maps: dict[str, ServerMap] = {}
+        self.actors: dict[str, MapActor] = {}
+        self.aliases: dict[int, int] = {}
+        self.names: dict[int, str] = {}
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._lock = threading.Lock()
         self.session = None
         self.bus: Bus | None = None
-        self._pose_sent: dict[str, float] = {}
+        self._fb_last: dict[str, float] = {}
+        self._fb_sent: dict[str, set[int]] = {}
 
     # --- state ------------------------------------------------------------------------
     def load(self) -> None:
-        """Rebuild every agent handler from Redis."""
-        for agent in self.store.agents():
-            info = self.store.agent_info(agent)
-            if info is None:
-                continue
-            h = AgentHandler(agent, info["map_id"], info["S_m_l"])
-            for kf in self.store.keyframes(agent):
-                h.poses[kf.id] = kf.T_m_kf
-                if kf.T_l_kf is not None:
-                    h.local_poses[kf.id] = kf.T_l_kf
-            h.mp_ids = set(self.store.mappoint_ids(agent))
-            self.handlers[agent] = h
-            log.info("resumed agent %s: %d keyframes, %d map points", agent, len(h.poses),
-                     len(h.mp_ids), extra={"agent": agent})  # fmt: skip
+        self.maps, self.handlers = persist.load_all(self.store, self.params)
+        self.names = persist.index_names(self.store)
+        for h in self.handlers.values():
+            self.aliases.update(h.aliases)
+            h.aliases = self.aliases
+            log.info("resumed agent %s: map %s, %d keyframes", h.agent, h.map_id,
+                     sum(1 for k in h.smap.kfs.values() if k.agent == h.agent),
+                     extra={"agent": h.agent})  # fmt: skip
 
     def handler(self, agent: str) -> AgentHandler:
         h = self.handlers.get(agent)
-        if h is None:
-            h = AgentHandler(agent, initial_map_id(agent), Sim3.identity())
-            pipe = self.store.pipeline()
-            Store.add_agent(pipe, agent, h.map_id, h.S_m_l, time.time_ns())
-            pipe.execute()
-            self.handlers[agent] = h
-            log.info("new agent %s with map %s", agent, h.map_id, extra={"agent": agent})
+        if h is not None:
+            return h
+        with self._lock:
+            h = self.handlers.get(agent)
+            if h is None:
+                idx = persist.agent_index(self.store, agent)
+                self.names[idx] = agent
+                map_id = initial_map_id(agent)
+                smap = self.maps.setdefault(map_id, ServerMap(map_id))
+                h = AgentHandler(agent, idx, smap, Sim3.identity(), self.params)
+                h.aliases = self.aliases
+                pipe = self.store.pipeline()
+                persist.write_handler(pipe, h, new=True)
+                pipe.hset(f"hm:agent:{agent}", "first_ns", time.time_ns())
+                pipe.execute()
+                self.handlers[agent] = h
+                log.info("new agent %s with map %s", agent, map_id, extra={"agent": agent})
         return h
 
-    # --- processing (transport-free, called by the worker and by tests) ------------------
-    def process_kf_bytes(self, key: str, payload: bytes, recv_ns: int) -> Ack | None:
+    def actor(self, map_id: str) -> MapActor:
+        a = self.actors.get(map_id)
+        if a is None:
+            with self._lock:
+                a = self.actors.get(map_id)
+                if a is None:
+                    a = MapActor(self, self.maps[map_id])
+                    self.actors[map_id] = a
+                    if self.session is not None:
+                        a.start()
+        return a
+
+    # --- processing (transport-free parts are called directly by tests) -----------------
+    def decode_kf(self, key: str, payload: bytes) -> KeyframeBatch | None:
         agent_key = keys.agent_of(key) or "?"
-        t0 = time.perf_counter()
         try:
             batch = KeyframeBatch.decode(payload)
             if batch.agent != agent_key:
@@ -90,46 +182,94 @@ class MapperService:
             log.warning("rejected keyframe message on %s: %s", key, e,
                         extra={"key": key, "reason": reason})  # fmt: skip
             return None
+        return batch
+
+    def process_kf_bytes(self, key: str, payload: bytes, recv_ns: int) -> Ack | None:
+        """Decode and apply synchronously (tests; the service queues on map actors)."""
+        batch = self.decode_kf(key, payload)
+        if batch is None:
+            return None
         h = self.handler(batch.agent)
+        with self.actor(h.map_id).lock:
+            return self.apply(h, batch, recv_ns)
+
+    def apply(self, h: AgentHandler, batch: KeyframeBatch, recv_ns: int) -> Ack:
+        t0 = time.perf_counter()
         res = h.ingest(batch, time.monotonic())
-        self._write(h, res)
+        if res.changed:
+            pipe = self.store.pipeline()
+            persist.write_result(pipe, h, res, self.names)
+            pipe.execute()
+        held, missing = h.blocked()
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
-                  np.array(res.ack_mp_ids, np.int64), h.kf_high, time.time_ns())  # fmt: skip
+                  np.array(res.ack_mp_ids, np.int64), h.kf_high, time.time_ns(),
+                  np.array(held, np.int64), np.array(missing, np.int64))  # fmt: skip
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
         now_ns = time.time_ns()
-        for _kf in res.keyframes:
+        for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
-        STORED.labels(SERVICE, "keyframe").inc(len(res.keyframes))
-        STORED.labels(SERVICE, "map_point").inc(len(res.mp_ids))
-        MAP_SIZE.labels(h.map_id).set(len(h.poses))
+        STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
+        STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
+        MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))
+        MAP_POINTS.labels(h.map_id).set(len(h.smap.mps))
         PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
         return ack
 
-    def _write(self, h: AgentHandler, res: IngestResult) -> None:
-        if not res.changed:
-            return
+    def cull(self, smap: ServerMap, rng: random.Random) -> int:
+        """One round of redundant-keyframe rejection on ``smap``."""
+        mine = [h for h in self.handlers.values() if h.smap is smap]
+        protected = set()
+        for h in mine:
+            for i in (h.kf_ref, h.latest_kf, h.first_kf):
+                if i >= 0:
+                    protected.add(h.kf_gid(i))
+            # Keyframes still waited on as predecessors must stay.
+            protected.update(h.kf_gid(k.pred_id) for k in h.pending_kfs.values())
+        m = self.settings.mapper
+        victims = find_redundant(smap, rng, protected, m.redundancy_ratio)
+        if not victims:
+            return 0
+        by_agent = {h.agent: h for h in mine}
         pipe = self.store.pipeline()
-        for kf in res.keyframes:
-            Store.put_keyframe(pipe, kf)
-        for kid, T, upd in res.pose_updates:
-            Store.set_keyframe_pose(pipe, h.agent, kid, T)
-            pipe.hset(
-                f"hm:kf:{h.agent}:{kid}",
-                mapping={"pred": upd.pred_id, "parent": upd.parent_id,
-                         "T_pred": upd.T_pred_kf.astype("<f8").tobytes(),
-                         "T_par": upd.T_par_kf.astype("<f8").tobytes()},
-            )  # fmt: skip
-            if upd.mp_ids is not None:
-                pipe.hset(f"hm:kf:{h.agent}:{kid}", "mpids", upd.mp_ids.astype("<i8").tobytes())
-        if len(res.mp_ids):
-            Store.put_map_points(pipe, h.agent, h.map_id, res.mp_ids, res.mp_ref, res.mp_p_ref,
-                                 res.mp_pos, res.mp_desc)  # fmt: skip
-        if len(res.upd_mp_ids):
-            Store.put_map_points(pipe, h.agent, h.map_id, res.upd_mp_ids, res.upd_mp_ref,
-                                 res.upd_mp_p_ref, res.upd_mp_pos, None)  # fmt: skip
-        Store.set_kf_high(pipe, h.agent, h.kf_high)
+        for g in victims:
+            kf = smap.kfs[g]
+            h = by_agent.get(kf.agent)
+            observers = {o for p in kf.observed().tolist() for o in smap.mps[p].obs} - {g}
+            if h is not None:
+                h.on_removed(kf)
+            dead = smap.remove_keyframe(g)
+            if h is not None:
+                persist.write_removed_kf(pipe, h, kf, dead, self.names)
+            for o in observers:
+                if o in smap.kfs:
+                    ok = smap.kfs[o]
+                    pipe.hset(f"hm:kf:{ok.agent}:{ok.id}", "gparent", ok.parent)
+            CULLED.labels(smap.map_id).inc()
         pipe.execute()
+        MAP_SIZE.labels(smap.map_id).set(len(smap.kfs))
+        return len(victims)
+
+    def send_feedback(self, smap: ServerMap) -> None:
+        if self.bus is None:
+            return
+        m = self.settings.mapper
+        now = time.monotonic()
+        for h in [h for h in self.handlers.values() if h.smap is smap]:
+            if (
+                m.feedback_k <= 0
+                or now - self._fb_last.get(h.agent, -1e9) < 1.0 / m.feedback_rate_hz
+            ):
+                continue
+            with self.actors[smap.map_id].lock if smap.map_id in self.actors else _null():
+                chunk = build_chunk(h, m.feedback_k, self._fb_sent.setdefault(h.agent, set()),
+                                    time.time_ns(), self.names)  # fmt: skip
+            self._fb_last[h.agent] = now
+            if chunk is None:
+                continue
+            data = chunk.encode()
+            self.bus.put(keys.agent_map(h.agent), data, reliable=False)
+            FEEDBACK_BYTES.labels(h.agent).inc(len(data))
 
     def process_pose_bytes(self, key: str, payload: bytes, recv_ns: int) -> dict | None:
         agent_key = keys.agent_of(key) or "?"
@@ -159,29 +299,32 @@ class MapperService:
         self.load()
         self.session = open_session(self.settings.zenoh)
         self.bus = Bus(self.session, SERVICE, self.settings.inject)
+        for map_id in list(self.maps):
+            self.actor(map_id)  # starts its thread now that the session is open
         self.kf_q = self.bus.subscribe(keys.ALL_AGENT_KF)
         self.pose_q = self.bus.subscribe(keys.ALL_AGENT_POSE, maxsize=256)
-        for name, fn in (("kf", self._kf_worker), ("pose", self._pose_worker)):
+        for name, fn in (("kf", self._dispatch), ("pose", self._pose_worker)):
             t = threading.Thread(target=fn, name=f"mapper-{name}", daemon=True)
             t.start()
             self._threads.append(t)
         UP.labels(SERVICE).set(1)
         log.info("mapper running")
 
-    def _kf_worker(self) -> None:
+    def _dispatch(self) -> None:
         while not self._stop.is_set():
             try:
                 item: Received = self.kf_q.get(timeout=0.2)
             except queue.Empty:
                 continue
             try:
-                self.process_kf_bytes(item.key, item.payload, item.recv_ns)
-            except redis.RedisError:
-                # Not acked, so the agent resends once Redis is back.
-                log.exception("redis write failed; batch not acknowledged")
+                batch = self.decode_kf(item.key, item.payload)
+                if batch is None:
+                    continue
+                h = self.handler(batch.agent)
+                self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
             except Exception:
                 REJECTED.labels(SERVICE, item.key, "internal").inc()
-                log.exception("keyframe batch failed", extra={"key": item.key})
+                log.exception("dispatch failed", extra={"key": item.key})
 
     def _pose_worker(self) -> None:
         while not self._stop.is_set():
@@ -198,6 +341,9 @@ class MapperService:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5)
+        for a in self.actors.values():
+            if a.thread.is_alive():
+                a.thread.join(timeout=5)
         UP.labels(SERVICE).set(0)
         if self.bus:
             self.bus.close()
@@ -205,6 +351,14 @@ class MapperService:
             self.session.close()
             self.session = None
         self.store.r.close()
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        return False
 
 
 def _reason(e: Exception) -> str:

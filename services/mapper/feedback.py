@@ -1,0 +1,65 @@
+"""Map data sent back to an agent (CCM-SLAM §4.5): the k keyframes most covisible with
+its KF_ref and their map points, relative to KF_ref and in the agent's local scale.
+
+Keypoints and descriptors of a keyframe go to an agent once; later chunks carry only
+its pose, which keeps the down-link small.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.geometry import scale_translation, se3_inv, transform_points
+from shared.messages import MapChunk
+
+from .registration import AgentHandler
+
+
+def build_chunk(
+    h: AgentHandler, k: int, sent: set[int], now_ns: int, names: dict[int, str]
+) -> MapChunk | None:
+    smap = h.smap
+    ref_g = h.kf_gid(h.kf_ref) if h.kf_ref >= 0 else -1
+    ref = smap.kfs.get(ref_g)
+    if ref is None:
+        return None
+    neigh = [g for g in smap.covisible(ref_g, k=k, min_weight=1)]
+    if not neigh:
+        return None
+    inv_s = 1.0 / h.scale
+    T_ref_m = se3_inv(ref.T_m_kf)
+    kfs = [smap.kfs[g] for g in neigh]
+    mp_set: dict[int, int] = {}
+    for kf in kfs:
+        for g in kf.mp[kf.mp >= 0].tolist():
+            mp_set.setdefault(g, len(mp_set))
+    mp_gids = list(mp_set)
+    pos = np.array([smap.mps[g].pos for g in mp_gids]).reshape(-1, 3)
+    p_ref = transform_points(T_ref_m, pos) * inv_s
+    kp, desc, idx = [], [], []
+    for kf in kfs:
+        if kf.gid in sent:
+            kp.append(np.zeros((0, 2), np.float32))
+            desc.append(np.zeros((0, 32), np.uint8))
+            idx.append(np.zeros(0, np.int64))
+        else:
+            kp.append(kf.keypoints.astype(np.float32))
+            desc.append(kf.descriptors.astype(np.uint8))
+            idx.append(
+                np.array([mp_set.get(int(g), -1) if g >= 0 else -1 for g in kf.mp], np.int64)
+            )
+            sent.add(kf.gid)
+    names = {kf.gid: kf.agent for kf in kfs}
+    return MapChunk(
+        agent=h.agent, map_id=smap.map_id, kf_ref=h.kf_ref,
+        kf_agents=[names[g] for g in neigh],
+        kf_ids=np.array([kf.id for kf in kfs], np.int64),
+        T_ref_kf=np.stack([scale_translation(T_ref_m @ kf.T_m_kf, inv_s) for kf in kfs]),
+        kf_keypoints=kp, kf_descriptors=desc, kf_mp_index=idx,
+        mp_agents=[names.get(g >> 40, "") for g in mp_gids],
+        mp_ids=np.array([g & ((1 << 40) - 1) for g in mp_gids], np.int64),
+        p_ref=p_ref.astype(np.float64),
+        mp_descriptors=np.array(
+            [smap.mps[g].descriptor for g in mp_gids], np.uint8).reshape(-1, 32),
+        sent_ns=now_ns,
+    )  # fmt: skip

@@ -1,0 +1,96 @@
+"""Duplicate map points: project covisible points into a new keyframe and fuse.
+
+ORB-SLAM's search-by-projection and fuse, vectorized: a k-d tree over the keyframe's
+keypoints (scipy) finds the keypoints near each projected point, a popcount table
+gives Hamming distances, and the best match under ``max_hamming`` either adds an
+observation (the keypoint had no point) or merges two points that are the same
+landmark (typically the agent re-triangulated a place it had trimmed from its
+local map, or two agents mapped it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from shared.camera import PinholeRadTan
+
+from .server_map import ServerKeyframe, ServerMap
+
+POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (..., 32) uint8 descriptor arrays."""
+    return POPCOUNT[np.bitwise_xor(a, b)].sum(axis=-1, dtype=np.int32)
+
+
+def fuse_by_projection(
+    smap: ServerMap,
+    kf: ServerKeyframe,
+    cam: PinholeRadTan,
+    n_neighbours: int = 10,
+    radius_px: float = 4.0,
+    max_hamming: int = 50,
+) -> tuple[int, set[int], set[int], dict[int, int]]:
+    """Returns (number of fused or added associations, keyframes whose observations
+    changed, removed point gids, aliases dropped -> kept)."""
+    changed: set[int] = set()
+    removed: set[int] = set()
+    aliases: dict[int, int] = {}
+    neigh = smap.covisible(kf.gid, n_neighbours, min_weight=1)
+    if not neigh or len(kf.keypoints) == 0:
+        return 0, changed, removed, aliases
+    own = set(kf.mp[kf.mp >= 0].tolist())
+    cand = set()
+    for n in neigh:
+        cand.update(smap.kfs[n].mp[smap.kfs[n].mp >= 0].tolist())
+    cand = np.array(sorted(cand - own), dtype=np.int64)
+    if len(cand) == 0:
+        return 0, changed, removed, aliases
+    P = np.array([smap.mps[g].pos for g in cand.tolist()])
+    R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
+    X_c = (P - t) @ R
+    uv, ok = cam.project(X_c, min_depth=0.1)
+    if not ok.any():
+        return 0, changed, removed, aliases
+    cand, uv = cand[ok], uv[ok]
+    tree = cKDTree(kf.keypoints.astype(np.float64))
+    dist, idx = tree.query(uv, k=3, distance_upper_bound=radius_px)
+    n_kp = len(kf.keypoints)
+    valid = idx < n_kp
+    idx_safe = np.where(valid, idx, 0)
+    desc_c = np.array([smap.mps[g].descriptor for g in cand.tolist()], dtype=np.uint8)
+    hd = hamming(kf.descriptors[idx_safe], desc_c[:, None, :])
+    hd = np.where(valid, hd, 1 << 20)
+    best = hd.argmin(axis=1)
+    best_d = hd[np.arange(len(cand)), best]
+    best_kp = idx_safe[np.arange(len(cand)), best]
+    good = best_d <= max_hamming
+    # One point per keypoint: the closest descriptor wins.
+    order = np.argsort(best_d[good], kind="stable")
+    taken: set[int] = set()
+    n = 0
+    for c_i in np.nonzero(good)[0][order].tolist():
+        j = int(best_kp[c_i])
+        if j in taken:
+            continue
+        taken.add(j)
+        p = int(cand[c_i])
+        if p not in smap.mps:
+            continue  # fused away earlier in this loop
+        cur = int(kf.mp[j])
+        if cur < 0:
+            if smap.add_observation(kf.gid, j, p):
+                changed.add(kf.gid)
+                n += 1
+        elif cur != p and cur in smap.mps:
+            a, b = smap.mps[cur], smap.mps[p]
+            keep, drop = (a, b) if len(a.obs) >= len(b.obs) else (b, a)
+            changed.update(drop.obs)
+            changed.update(keep.obs)
+            smap.fuse(keep.gid, drop.gid)
+            removed.add(drop.gid)
+            aliases[drop.gid] = keep.gid
+            n += 1
+    return n, changed, removed, aliases

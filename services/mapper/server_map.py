@@ -1,0 +1,258 @@
+"""The server map: keyframes, map points, observations, covisibility, spanning tree.
+
+Pure data structure (no transport, no storage). Keyframes and map points are
+identified map-wide by integer gids, ``agent_index << 40 | local id``, so ids from
+different agents never collide and arrays of ids stay plain int64.
+
+Graph definitions follow ORB-SLAM, as CCM-SLAM uses them (§4.2):
+- covisibility: weight = number of map points two keyframes both observe; an edge
+  exists from ``COVIS_MIN`` (15) shared points;
+- spanning tree: each keyframe's parent is the keyframe it shared most points with
+  when it was inserted;
+- essential graph: spanning tree + covisibility edges of weight >= ``STRONG`` (100)
+  + loop edges.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+COVIS_MIN = 15
+STRONG = 100
+ID_BITS = 40
+NO_MP = -1
+
+
+def gid(agent_index: int, local_id: int) -> int:
+    return (agent_index << ID_BITS) | local_id
+
+
+def split_gid(g: int) -> tuple[int, int]:
+    return g >> ID_BITS, g & ((1 << ID_BITS) - 1)
+
+
+@dataclass
+class ServerKeyframe:
+    gid: int
+    agent: str
+    id: int
+    stamp_ns: int
+    T_m_kf: np.ndarray
+    T_l_kf: np.ndarray
+    keypoints: np.ndarray  # (N, 2) float32 distorted pixels
+    xy: np.ndarray  # (N, 2) undistorted normalized coordinates
+    octaves: np.ndarray
+    descriptors: np.ndarray  # (N, 32) uint8
+    mp: np.ndarray  # (N,) int64 gid of the map point of each keypoint, -1 none
+    parent: int = -1  # spanning-tree parent gid
+    children: set[int] = field(default_factory=set)
+    loop_edges: set[int] = field(default_factory=set)
+
+    def observed(self) -> np.ndarray:
+        return np.unique(self.mp[self.mp >= 0])
+
+
+@dataclass
+class ServerMapPoint:
+    gid: int
+    pos: np.ndarray  # (3,) map frame
+    descriptor: np.ndarray  # (32,) uint8
+    ref_kf: int  # gid of the keyframe its position is anchored to
+    obs: dict[int, int] = field(default_factory=dict)  # kf gid -> keypoint index
+
+
+class ServerMap:
+    def __init__(self, map_id: str) -> None:
+        self.map_id = map_id
+        self.kfs: dict[int, ServerKeyframe] = {}
+        self.mps: dict[int, ServerMapPoint] = {}
+        self.covis: dict[int, Counter] = {}
+        self.agents: set[str] = set()
+        self.version = 0  # bumped on every change; optimizers compare it
+
+    # --- keyframes ------------------------------------------------------------------------
+    def add_keyframe(self, kf: ServerKeyframe) -> None:
+        """Insert a keyframe; its ``mp`` entries that name known points become observations."""
+        if kf.gid in self.kfs:
+            raise KeyError(f"keyframe {kf.gid} already in map {self.map_id}")
+        self.kfs[kf.gid] = kf
+        self.covis[kf.gid] = Counter()
+        self.agents.add(kf.agent)
+        mp = kf.mp
+        for j in np.nonzero(mp >= 0)[0].tolist():
+            p = self.mps.get(int(mp[j]))
+            if p is None or kf.gid in p.obs:
+                mp[j] = NO_MP  # unknown point or a second keypoint on the same point
+                continue
+            self._observe(kf, j, p)
+        best = self.best_covisible(kf.gid, exclude_newer=False)
+        if best is not None:
+            kf.parent = best
+            self.kfs[best].children.add(kf.gid)
+        self.version += 1
+
+    def _observe(self, kf: ServerKeyframe, j: int, p: ServerMapPoint) -> None:
+        c = self.covis[kf.gid]
+        for other in p.obs:
+            c[other] += 1
+            self.covis[other][kf.gid] += 1
+        p.obs[kf.gid] = j
+        kf.mp[j] = p.gid
+
+    def add_observation(self, kf_gid: int, kp: int, mp_gid: int) -> bool:
+        kf = self.kfs.get(kf_gid)
+        p = self.mps.get(mp_gid)
+        if kf is None or p is None or kf_gid in p.obs or not 0 <= kp < len(kf.mp):
+            return False
+        if kf.mp[kp] >= 0:
+            self._unobserve(kf, kp)
+        self._observe(kf, kp, p)
+        self.version += 1
+        return True
+
+    def _unobserve(self, kf: ServerKeyframe, j: int) -> None:
+        p = self.mps.get(int(kf.mp[j]))
+        kf.mp[j] = NO_MP
+        if p is None or p.obs.get(kf.gid) != j:
+            return
+        del p.obs[kf.gid]
+        c = self.covis[kf.gid]
+        for other in p.obs:
+            c[other] -= 1
+            if c[other] <= 0:
+                del c[other]
+            oc = self.covis[other]
+            oc[kf.gid] -= 1
+            if oc[kf.gid] <= 0:
+                del oc[kf.gid]
+
+    def remove_keyframe(self, kf_gid: int) -> list[int]:
+        """Remove a keyframe with its observations; points left with no observation go
+        too (their gids are returned). Children move to their best covisible keyframe."""
+        kf = self.kfs[kf_gid]
+        seen = [int(g) for g in kf.observed()]
+        for j in np.nonzero(kf.mp >= 0)[0].tolist():
+            self._unobserve(kf, j)
+        dead = []
+        for g in seen:
+            p = self.mps.get(g)
+            if p is None:
+                continue
+            if not p.obs:
+                dead.append(g)
+                del self.mps[g]
+            elif p.ref_kf == kf_gid:
+                # Its position stays; only the anchor for later corrections moves.
+                p.ref_kf = next(iter(p.obs))
+        for other in list(self.covis.pop(kf_gid, {})):
+            self.covis[other].pop(kf_gid, None)
+        del self.kfs[kf_gid]
+        if kf.parent in self.kfs:
+            self.kfs[kf.parent].children.discard(kf_gid)
+        for ch in kf.children:
+            c = self.kfs.get(ch)
+            if c is None:
+                continue
+            new_parent = self.best_covisible(ch, exclude=set(kf.children) | {kf_gid})
+            if new_parent is None and kf.parent in self.kfs:
+                new_parent = kf.parent
+            c.parent = -1 if new_parent is None else new_parent
+            if new_parent is not None:
+                self.kfs[new_parent].children.add(ch)
+        for other in kf.loop_edges:
+            if other in self.kfs:
+                self.kfs[other].loop_edges.discard(kf_gid)
+        self.version += 1
+        return dead
+
+    # --- map points ----------------------------------------------------------------------
+    def add_map_point(self, p: ServerMapPoint) -> None:
+        if p.gid in self.mps:
+            raise KeyError(f"map point {p.gid} already in map {self.map_id}")
+        self.mps[p.gid] = p
+        self.version += 1
+
+    def fuse(self, keep: int, drop: int) -> None:
+        """Merge duplicate point ``drop`` into ``keep`` (observations move over)."""
+        if keep == drop or keep not in self.mps or drop not in self.mps:
+            return
+        pd = self.mps[drop]
+        for kf_gid, j in list(pd.obs.items()):
+            kf = self.kfs[kf_gid]
+            self._unobserve(kf, j)
+            if kf_gid not in self.mps[keep].obs:
+                self._observe(kf, j, self.mps[keep])
+        del self.mps[drop]
+        self.version += 1
+
+    # --- queries -------------------------------------------------------------------------
+    def best_covisible(
+        self, kf_gid: int, exclude: set[int] | None = None, exclude_newer: bool = False
+    ) -> int | None:
+        c = self.covis.get(kf_gid)
+        if not c:
+            return None
+        best, w = None, 0
+        for other, n in c.items():
+            if exclude and other in exclude:
+                continue
+            if n > w:
+                best, w = other, n
+        return best
+
+    def covisible(self, kf_gid: int, k: int | None = None, min_weight: int = COVIS_MIN):
+        """Neighbours with at least ``min_weight`` shared points, strongest first."""
+        c = self.covis.get(kf_gid, {})
+        items = sorted(((n, o) for o, n in c.items() if n >= min_weight), reverse=True)
+        return [o for _, o in items[:k]] if k else [o for _, o in items]
+
+    def essential_edges(self) -> list[tuple[int, int, str]]:
+        edges: set[tuple[int, int, str]] = set()
+        for g, kf in self.kfs.items():
+            if kf.parent in self.kfs:
+                edges.add((min(g, kf.parent), max(g, kf.parent), "tree"))
+            for o, n in self.covis[g].items():
+                if n >= STRONG and g < o:
+                    edges.add((g, o, "strong"))
+            for o in kf.loop_edges:
+                if o in self.kfs:
+                    edges.add((min(g, o), max(g, o), "loop"))
+        return sorted(edges)
+
+    def recount_covisibility(self) -> dict[int, Counter]:
+        """Covisibility recomputed from observations (the invariant check's reference)."""
+        out: dict[int, Counter] = {g: Counter() for g in self.kfs}
+        for p in self.mps.values():
+            obs = list(p.obs)
+            for i, a in enumerate(obs):
+                for b in obs[i + 1 :]:
+                    out[a][b] += 1
+                    out[b][a] += 1
+        return out
+
+    def check_invariants(self) -> list[str]:
+        """Every observation points at an existing point and back; covisibility equals a
+        recount. Returns the violations (empty when the map is consistent)."""
+        errs = []
+        for g, kf in self.kfs.items():
+            for j in np.nonzero(kf.mp >= 0)[0].tolist():
+                p = self.mps.get(int(kf.mp[j]))
+                if p is None:
+                    errs.append(f"kf {g} kp {j} -> missing point {int(kf.mp[j])}")
+                elif p.obs.get(g) != j:
+                    errs.append(f"kf {g} kp {j} -> point {p.gid} without back reference")
+        for pg, p in self.mps.items():
+            for kg, j in p.obs.items():
+                kf = self.kfs.get(kg)
+                if kf is None or kf.mp[j] != pg:
+                    errs.append(f"point {pg} -> kf {kg} kp {j} without back reference")
+        ref = self.recount_covisibility()
+        for g in self.kfs:
+            got = {o: n for o, n in self.covis.get(g, {}).items() if n > 0}
+            want = {o: n for o, n in ref[g].items() if n > 0}
+            if got != want:
+                errs.append(f"covisibility of kf {g} differs from recount")
+        return errs
