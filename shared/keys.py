@@ -42,6 +42,7 @@ def map_correction(map_id: str) -> str:
 
 
 MATCH = f"{ROOT}/match"
+MAPPER_STATE = f"{ROOT}/mapper/state"  # queryable: digest of every map and handler
 
 # Subscriptions.
 ALL_AGENT_KF = f"{ROOT}/agent/*/up/kf"

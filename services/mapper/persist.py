@@ -155,6 +155,7 @@ def load_all(
         for kid, v in r.hgetall(f"{k_agent(agent)}:removed").items():
             g, T = unpackb(v)
             ah.removed[int(kid)] = (int(g), np.array(T))
+            smap.culled[ah.kf_gid(int(kid))] = ah.removed[int(kid)]
         handlers[agent] = ah
         for mp in _points(store, agent):
             smap.mps[mp.gid] = mp

@@ -41,7 +41,7 @@ def refine_pose(
     focal: float,
     thr_px: float = 3.0,
     min_inliers: int = 20,
-    min_gain_px: float = 0.05,
+    min_gain_px: float = 0.5,
 ) -> Refined:
     """Refine camera pose T_m_c from normalized image points ``xy`` (N, 2) observing
     map points ``P_m`` (N, 3). The result is accepted only with enough inliers and a
@@ -74,8 +74,8 @@ def refine_pose(
     # Same inlier set for both, so the comparison is fair.
     rms_before = float(np.sqrt(np.mean(r0[inl] ** 2)))
     rms_after = float(np.sqrt(np.mean(r1[inl] ** 2)))
-    # Gains below a twentieth of a pixel fit the keypoint quantization (float32 on the
-    # wire), not a pose error: such a chained pose is kept as it came.
+    # Gains below half a pixel fit noise (single-view point depths, float32 keypoints on the
+    # wire), not a pose error: such a chained pose is kept as the agent sent it.
     accepted = rms_after < 0.99 * rms_before and rms_before - rms_after > min_gain_px
     T = se3_inv(T_c_m1) if accepted else T_m_c
     return Refined(T, inl, rms_before, rms_after, accepted)

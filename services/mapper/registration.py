@@ -113,12 +113,17 @@ class AgentHandler:
         return g
 
     def kf_pose(self, kf_id: int) -> np.ndarray | None:
-        kf = self.smap.kfs.get(self.kf_gid(kf_id))
-        if kf is not None:
-            return kf.T_m_kf
-        r = self.removed.get(kf_id)
-        if r is not None and r[0] in self.smap.kfs:
-            return self.smap.kfs[r[0]].T_m_kf @ r[1]
+        """T_m_kf of a keyframe, also of a culled one (through its chain of anchors)."""
+        g = self.kf_gid(kf_id)
+        T = None
+        for _ in range(10_000):
+            kf = self.smap.kfs.get(g)
+            if kf is not None:
+                return kf.T_m_kf if T is None else kf.T_m_kf @ T
+            e = self.smap.culled.get(g)
+            if e is None:
+                return None
+            g, T = e[0], e[1] if T is None else e[1] @ T
         return None
 
     def has_kf(self, kf_id: int) -> bool:
@@ -252,7 +257,7 @@ class AgentHandler:
                     and t_hat * self.lam > self.params.min_scale_baseline
                 ):
                     lam_hat = np.linalg.norm((se3_inv(T_pred) @ T)[:3, 3]) / t_hat
-                    self.lam += self.params.kappa * (lam_hat - self.lam)
+                    self.lam += self._kappa(kf) * (lam_hat - self.lam)
         waiting = np.nonzero(has & ~known)[0]
         mp_known = np.where(known, mp, -1)
         skf = ServerKeyframe(
@@ -278,6 +283,15 @@ class AgentHandler:
             res.removed_mps |= removed
             res.aliases.update(aliases)
             self.aliases.update(aliases)
+
+    def _kappa(self, kf: NewKeyframe) -> float:
+        """CSfM's smoothing factor is per keyframe at its ~10 Hz keyframe rate; our agents
+        make keyframes at 2-5 Hz, so kappa is applied per 0.1 s elapsed since the
+        predecessor, which keeps the filter's time constant what the paper tuned."""
+        prev = self.smap.kfs.get(self.kf_gid(kf.pred_id))
+        dt = (kf.stamp_ns - prev.stamp_ns) * 1e-9 if prev is not None else 0.1
+        steps = min(max(dt / 0.1, 0.1), 50.0)
+        return 1.0 - (1.0 - self.params.kappa) ** steps
 
     def _attach_ready_mps(self, res: IngestResult) -> None:
         ready = [i for i, (r, _, _) in self.pending_mps.items() if self.kf_pose(r) is not None]
@@ -328,7 +342,9 @@ class AgentHandler:
         """The map culled one of this agent's keyframes: keep chaining through it."""
         par = kf.parent if kf.parent in self.smap.kfs else None
         if par is None:
-            cands = [g for g in self.smap.kfs if self.smap.kfs[g].agent == self.agent]
+            cands = [g for g, k in self.smap.kfs.items() if k.agent == self.agent and g != kf.gid]
             par = min(cands, key=lambda g: abs((g & ((1 << 40) - 1)) - kf.id), default=None)
         if par is not None:
-            self.removed[kf.id] = (par, se3_inv(self.smap.kfs[par].T_m_kf) @ kf.T_m_kf)
+            entry = (par, se3_inv(self.smap.kfs[par].T_m_kf) @ kf.T_m_kf)
+            self.removed[kf.id] = entry
+            self.smap.culled[kf.gid] = entry

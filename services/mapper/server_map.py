@@ -71,6 +71,9 @@ class ServerMap:
         self.mps: dict[int, ServerMapPoint] = {}
         self.covis: dict[int, Counter] = {}
         self.agents: set[str] = set()
+        # Culled keyframes: gid -> (anchor gid, T_anchor_kf), so later keyframes that
+        # name one as predecessor still register, and trajectories keep it.
+        self.culled: dict[int, tuple[int, np.ndarray]] = {}
         self.version = 0  # bumped on every change; optimizers compare it
 
     # --- keyframes ------------------------------------------------------------------------
@@ -256,3 +259,32 @@ class ServerMap:
             if got != want:
                 errs.append(f"covisibility of kf {g} differs from recount")
         return errs
+
+
+def digest(smap: ServerMap) -> dict:
+    """A comparable summary of a map: ids, point positions, observations, covisibility."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for g in sorted(smap.kfs):
+        kf = smap.kfs[g]
+        h.update(np.int64(g).tobytes())
+        h.update(np.round(kf.T_m_kf, 9).tobytes())
+        h.update(kf.mp.astype(np.int64).tobytes())
+    kf_hash = h.hexdigest()
+    h = hashlib.sha256()
+    for g in sorted(smap.mps):
+        h.update(np.int64(g).tobytes())
+        h.update(np.round(smap.mps[g].pos, 9).tobytes())
+    mp_hash = h.hexdigest()
+    h = hashlib.sha256()
+    for a in sorted(smap.covis):
+        for b, w in sorted(smap.covis[a].items()):
+            if w > 0:
+                h.update(np.array([a, b, w], np.int64).tobytes())
+    return {
+        "map": smap.map_id, "n_kf": len(smap.kfs), "n_mp": len(smap.mps),
+        "kf_hash": kf_hash, "mp_hash": mp_hash, "covis_hash": h.hexdigest(),
+        "parents_hash": hashlib.sha256(np.array(
+            [[g, smap.kfs[g].parent] for g in sorted(smap.kfs)], np.int64).tobytes()).hexdigest(),
+    }  # fmt: skip

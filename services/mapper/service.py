@@ -29,7 +29,7 @@ import redis
 
 from shared import keys
 from shared.geometry import Sim3
-from shared.messages import Ack, DecodeError, KeyframeBatch, PoseUpdate
+from shared.messages import Ack, DecodeError, KeyframeBatch, PoseUpdate, packb
 from shared.metrics import KEYFRAME_LATENCY, MAP_SIZE, PROCESSING, REJECTED, STORED, UP
 from shared.settings import Settings
 from shared.store import Store, connect
@@ -40,7 +40,7 @@ from .feedback import build_chunk
 from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
 from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
-from .server_map import ServerMap
+from .server_map import ServerMap, digest
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -135,7 +135,11 @@ class MapperService:
                      sum(1 for k in h.smap.kfs.values() if k.agent == h.agent),
                      extra={"agent": h.agent})  # fmt: skip
 
-    def handler(self, agent: str) -> AgentHandler:
+    def handler(
+        self, agent: str, map_id: str | None = None, S_m_l: Sim3 | None = None
+    ) -> AgentHandler:
+        """The agent's handler, created on first contact with a map of its own, or
+        in ``map_id`` through ``S_m_l`` (an agent joining a known map)."""
         h = self.handlers.get(agent)
         if h is not None:
             return h
@@ -144,9 +148,9 @@ class MapperService:
             if h is None:
                 idx = persist.agent_index(self.store, agent)
                 self.names[idx] = agent
-                map_id = initial_map_id(agent)
+                map_id = map_id or initial_map_id(agent)
                 smap = self.maps.setdefault(map_id, ServerMap(map_id))
-                h = AgentHandler(agent, idx, smap, Sim3.identity(), self.params)
+                h = AgentHandler(agent, idx, smap, S_m_l or Sim3.identity(), self.params)
                 h.aliases = self.aliases
                 pipe = self.store.pipeline()
                 persist.write_handler(pipe, h, new=True)
@@ -294,6 +298,26 @@ class MapperService:
         self.store.put_pose(p.agent, doc)
         return doc
 
+    def state_digest(self) -> dict:
+        """Digest of every map and agent handler (answered on ``hivemap/mapper/state``)."""
+        maps = {}
+        for map_id, smap in list(self.maps.items()):
+            a = self.actors.get(map_id)
+            with a.lock if a else _null():
+                maps[map_id] = digest(smap)
+        agents = {
+            h.agent: {"map": h.map_id, "S_m_l": h.S_m_l.to_array().round(12).tolist(),
+                      "lam": round(h.lam, 12), "removed": sorted(h.removed)}
+            for h in list(self.handlers.values())
+        }  # fmt: skip
+        return {"maps": maps, "agents": agents}
+
+    def _on_state_query(self, query) -> None:
+        try:
+            query.reply(keys.MAPPER_STATE, packb(self.state_digest()))
+        except Exception:
+            log.exception("state query failed")
+
     # --- service loop -------------------------------------------------------------------
     def start(self) -> None:
         self.load()
@@ -301,6 +325,7 @@ class MapperService:
         self.bus = Bus(self.session, SERVICE, self.settings.inject)
         for map_id in list(self.maps):
             self.actor(map_id)  # starts its thread now that the session is open
+        self._queryable = self.session.declare_queryable(keys.MAPPER_STATE, self._on_state_query)
         self.kf_q = self.bus.subscribe(keys.ALL_AGENT_KF)
         self.pose_q = self.bus.subscribe(keys.ALL_AGENT_POSE, maxsize=256)
         for name, fn in (("kf", self._dispatch), ("pose", self._pose_worker)):
@@ -345,6 +370,8 @@ class MapperService:
             if a.thread.is_alive():
                 a.thread.join(timeout=5)
         UP.labels(SERVICE).set(0)
+        if getattr(self, "_queryable", None) is not None:
+            self._queryable.undeclare()
         if self.bus:
             self.bus.close()
         if self.session is not None:
