@@ -6,13 +6,13 @@ Layout (prefix ``hm``; ``{a}`` agent id, ``{m}`` map id, ids are decimal):
     hm:agent:{a}             HASH  map, S_m_l (8 f8: t, q xyzw, s), kf_high, n_kf, n_mp,
                                    first_ns, last_ns
     hm:agent:{a}:kfs         ZSET  stored keyframe ids (score = id)
-    hm:agent:{a}:mps         SET   stored map point ids
     hm:agent:{a}:pose        STR   msgpack latest pose in its map frame
     hm:kf:{a}:{id}           HASH  map, stamp, pose (T_m_kf 16 f8), pred, parent, T_pred,
                                    T_par, T_l (the agent's local pose), kp (f4 N x 2),
                                    oct (u1), desc (u1 N x 32), mpids (i8)
-    hm:mp:{a}:{id}           HASH  map, ref (kf id of the same agent), p_ref (3 f8),
-                                   pos (3 f8, map frame), desc (32 u1)
+    hm:mp:{a}                HASH  map point id -> 64-byte record MP_DTYPE: position in
+                                   the map frame (3 f8), anchor keyframe gid (i8), descriptor
+                                   (32 u1); one field per point so a batch is one HSET
     hm:maps                  SET   map ids
     hm:map:{m}               HASH  created_ns, agents (comma separated)
     hm:map:{m}:kfs           SET   "a:id" of its keyframes
@@ -45,8 +45,11 @@ def k_agent_kfs(a: str) -> str:
     return f"{P}:agent:{a}:kfs"
 
 
-def k_agent_mps(a: str) -> str:
-    return f"{P}:agent:{a}:mps"
+def k_mps(a: str) -> str:
+    return f"{P}:mp:{a}"
+
+
+MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
 
 
 def k_agent_pose(a: str) -> str:
@@ -55,10 +58,6 @@ def k_agent_pose(a: str) -> str:
 
 def k_kf(a: str, i: int) -> str:
     return f"{P}:kf:{a}:{i}"
-
-
-def k_mp(a: str, i: int) -> str:
-    return f"{P}:mp:{a}:{i}"
 
 
 def k_map(m: str) -> str:
@@ -159,19 +158,23 @@ class Store:
         pipe.hset(k_kf(agent, kf_id), "pose", np.asarray(T_m_kf, "<f8").tobytes())
 
     @staticmethod
-    def put_map_points(pipe, agent: str, map_id: str, ids, ref_kf, p_ref, pos, desc) -> None:
-        for j in range(len(ids)):
-            fields = {
-                "map": map_id,
-                "ref": int(ref_kf[j]),
-                "p_ref": np.asarray(p_ref[j], "<f8").tobytes(),
-                "pos": np.asarray(pos[j], "<f8").tobytes(),
-            }
-            if desc is not None:
-                fields["desc"] = np.asarray(desc[j], np.uint8).tobytes()
-            pipe.hset(k_mp(agent, int(ids[j])), mapping=fields)
+    def put_points(pipe, agent: str, ids, pos, ref_g, desc) -> None:
+        """Map points of one agent in one HSET (records of MP_DTYPE)."""
+        if len(ids) == 0:
+            return
+        rec = np.empty(len(ids), MP_DTYPE)
+        rec["pos"] = pos
+        rec["ref_g"] = ref_g
+        rec["desc"] = desc
+        raw = rec.tobytes()
+        n = MP_DTYPE.itemsize
+        pipe.hset(k_mps(agent), mapping={int(i): raw[j * n : (j + 1) * n]
+                                         for j, i in enumerate(ids)})  # fmt: skip
+
+    @staticmethod
+    def del_points(pipe, agent: str, ids) -> None:
         if len(ids):
-            pipe.sadd(k_agent_mps(agent), *[str(int(i)) for i in ids])
+            pipe.hdel(k_mps(agent), *[int(i) for i in ids])
 
     @staticmethod
     def set_kf_high(pipe, agent: str, kf_high: int) -> None:
@@ -199,7 +202,7 @@ class Store:
             "S_m_l": S,
             "kf_high": int(h.get(b"kf_high", -1)),
             "n_kf": int(self.r.zcard(k_agent_kfs(agent))),
-            "n_mp": int(self.r.scard(k_agent_mps(agent))),
+            "n_mp": int(self.r.hlen(k_mps(agent))),
             "first_ns": int(h.get(b"first_ns", 0)),
             "last_ns": int(h.get(b"last_ns", 0)),
         }
@@ -212,7 +215,7 @@ class Store:
         return [int(x) for x in self.r.zrange(k_agent_kfs(agent), 0, -1)]
 
     def mappoint_ids(self, agent: str) -> list[int]:
-        return sorted(int(x) for x in self.r.smembers(k_agent_mps(agent)))
+        return sorted(int(x) for x in self.r.hkeys(k_mps(agent)))
 
     def keyframes(self, agent: str, ids: list[int] | None = None, full: bool = False):
         ids = self.keyframe_ids(agent) if ids is None else ids
@@ -239,21 +242,25 @@ class Store:
             out.append(kf)
         return out
 
-    def map_points(self, agent: str, ids: list[int] | None = None) -> list[StoredMapPoint]:
-        ids = self.mappoint_ids(agent) if ids is None else ids
-        p = self.r.pipeline(transaction=False)
-        for i in ids:
-            p.hmget(k_mp(agent, i), [b"map", b"ref", b"p_ref", b"pos", b"desc"])
-        out = []
-        for i, v in zip(ids, p.execute(), strict=True):
-            if v[0] is None:
-                continue
-            desc = None if v[4] is None else np.frombuffer(v[4], np.uint8).copy()
-            out.append(
-                StoredMapPoint(agent, i, v[0].decode(), int(v[1]), _f8(v[2], (3,)),
-                               _f8(v[3], (3,)), desc)
-            )  # fmt: skip
-        return out
+    def map_point_records(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, records of MP_DTYPE) of an agent's map points, sorted by id."""
+        h = self.r.hgetall(k_mps(agent))
+        if not h:
+            return np.zeros(0, np.int64), np.zeros(0, MP_DTYPE)
+        ids = np.array([int(k) for k in h], np.int64)
+        rec = np.frombuffer(b"".join(h.values()), MP_DTYPE)
+        order = np.argsort(ids)
+        return ids[order], rec[order]
+
+    def map_points(self, agent: str) -> list[StoredMapPoint]:
+        info = self.agent_info(agent)
+        map_id = info["map_id"] if info else ""
+        ids, rec = self.map_point_records(agent)
+        return [
+            StoredMapPoint(agent, int(i), map_id, int(r["ref_g"]) & ((1 << 40) - 1),
+                           np.zeros(3), r["pos"].copy(), r["desc"].copy())
+            for i, r in zip(ids, rec, strict=True)
+        ]  # fmt: skip
 
     def trajectory(self, agent: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, stamps_ns, T_m_kf) of the agent's stored keyframes, sorted by id."""

@@ -29,7 +29,7 @@ def fuse_by_projection(
     smap: ServerMap,
     kf: ServerKeyframe,
     cam: PinholeRadTan,
-    n_neighbours: int = 10,
+    n_neighbours: int = 6,
     radius_px: float = 4.0,
     max_hamming: int = 50,
 ) -> tuple[int, set[int], set[int], dict[int, int]]:
@@ -48,7 +48,8 @@ def fuse_by_projection(
     cand = np.array(sorted(cand - own), dtype=np.int64)
     if len(cand) == 0:
         return 0, changed, removed, aliases
-    P = np.array([smap.mps[g].pos for g in cand.tolist()])
+    mps = smap.mps
+    P = np.array([mps[g].pos for g in cand.tolist()])
     R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
     X_c = (P - t) @ R
     uv, ok = cam.project(X_c, min_depth=0.1)

@@ -6,7 +6,6 @@ restart. Layout: shared/store.py's docstring; this module adds the mapper's fiel
     hm:agent:{a}              HASH  + index, lam
     hm:agent:{a}:removed      HASH  culled kf id -> msgpack (anchor gid, T_anchor_kf)
     hm:kf:{a}:{id}            HASH  + gid, mpg (i8 point gid per keypoint), gparent
-    hm:mp:{a}:{id}            HASH  + ref_g (anchor keyframe gid)
     hm:alias                  HASH  fused point gid -> surviving gid
 """
 
@@ -22,11 +21,9 @@ from shared.store import (
     Store,
     k_agent,
     k_agent_kfs,
-    k_agent_mps,
     k_kf,
     k_map,
     k_map_kfs,
-    k_mp,
 )
 
 from .registration import AgentHandler, IngestResult, MapperParams
@@ -93,28 +90,33 @@ def write_result(pipe, h: AgentHandler, res: IngestResult, names: dict[int, str]
         kf = smap.kfs.get(g)
         if kf is not None:
             pipe.hset(k_kf(kf.agent, kf.id), mapping=_kf_fields(kf, smap.map_id))
-    for g in list(res.new_mps) + sorted(res.changed_mps):
-        write_point(pipe, smap, g, names)
-    for g in res.removed_mps:
-        ai, i = split_gid(g)
-        pipe.delete(k_mp(names[ai], i))
-        pipe.srem(k_agent_mps(names[ai]), str(i))
+    write_points(pipe, smap, list(res.new_mps) + sorted(res.changed_mps), names)
+    delete_points(pipe, res.removed_mps, names)
     for drop, keep in res.aliases.items():
         pipe.hset(K_ALIAS, str(drop), str(keep))
     write_handler(pipe, h)
 
 
-def write_point(pipe, smap: ServerMap, g: int, names: dict[int, str]) -> None:
-    p = smap.mps.get(g)
-    if p is None:
-        return
-    ai, i = split_gid(g)
-    ra, ri = split_gid(p.ref_kf)
-    pipe.hset(k_mp(names[ai], i), mapping={
-        "map": smap.map_id, "ref": ri, "ref_g": p.ref_kf, "pos": p.pos.astype("<f8").tobytes(),
-        "p_ref": np.zeros(3).tobytes(), "desc": p.descriptor.astype(np.uint8).tobytes(),
-    })  # fmt: skip
-    pipe.sadd(k_agent_mps(names[ai]), str(i))
+def write_points(pipe, smap: ServerMap, gids, names: dict[int, str]) -> None:
+    by_agent: dict[int, list[int]] = {}
+    for g in gids:
+        if g in smap.mps:
+            by_agent.setdefault(g >> 40, []).append(g)
+    for ai, gs in by_agent.items():
+        pts = [smap.mps[g] for g in gs]
+        Store.put_points(
+            pipe, names[ai], [split_gid(g)[1] for g in gs],
+            np.array([p.pos for p in pts]), np.array([p.ref_kf for p in pts]),
+            np.array([p.descriptor for p in pts]),
+        )  # fmt: skip
+
+
+def delete_points(pipe, gids, names: dict[int, str]) -> None:
+    by_agent: dict[int, list[int]] = {}
+    for g in gids:
+        by_agent.setdefault(g >> 40, []).append(split_gid(g)[1])
+    for ai, ids in by_agent.items():
+        Store.del_points(pipe, names[ai], ids)
 
 
 def write_removed_kf(pipe, h: AgentHandler, kf: ServerKeyframe, dead_mps: list[int],
@@ -125,10 +127,7 @@ def write_removed_kf(pipe, h: AgentHandler, kf: ServerKeyframe, dead_mps: list[i
     if kf.id in h.removed:
         g, T = h.removed[kf.id]
         pipe.hset(f"{k_agent(kf.agent)}:removed", str(kf.id), packb([g, T]))
-    for g in dead_mps:
-        ai, i = split_gid(g)
-        pipe.delete(k_mp(names[ai], i))
-        pipe.srem(k_agent_mps(names[ai]), str(i))
+    delete_points(pipe, dead_mps, names)
 
 
 def load_all(
@@ -204,17 +203,11 @@ def _keyframes(store: Store, agent: str, ah: AgentHandler):
 
 
 def _points(store: Store, agent: str) -> list[ServerMapPoint]:
-    ids = store.mappoint_ids(agent)
-    p = store.r.pipeline(transaction=False)
-    for i in ids:
-        p.hmget(k_mp(agent, i), [b"pos", b"desc", b"ref_g"])
-    out = []
-    idx = None
-    for i, v in zip(ids, p.execute(), strict=True):
-        if v[0] is None:
-            continue
-        if idx is None:
-            idx = int(store.r.hget(K_INDEX, agent))
-        out.append(ServerMapPoint((idx << 40) | i, np.frombuffer(v[0], "<f8").copy(),
-                                  np.frombuffer(v[1], np.uint8).copy(), int(v[2])))  # fmt: skip
-    return out
+    ids, rec = store.map_point_records(agent)
+    if len(ids) == 0:
+        return []
+    idx = int(store.r.hget(K_INDEX, agent))
+    return [
+        ServerMapPoint((idx << 40) | int(i), r["pos"].copy(), r["desc"].copy(), int(r["ref_g"]))
+        for i, r in zip(ids, rec, strict=True)
+    ]

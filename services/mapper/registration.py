@@ -294,21 +294,29 @@ class AgentHandler:
         return 1.0 - (1.0 - self.params.kappa) ** steps
 
     def _attach_ready_mps(self, res: IngestResult) -> None:
-        ready = [i for i, (r, _, _) in self.pending_mps.items() if self.kf_pose(r) is not None]
-        for i in sorted(ready):
-            ref, p_ref, desc = self.pending_mps.pop(i)
-            g = gid(self.index, i)
+        ready: dict[int, list[int]] = {}
+        for i, (r, _, _) in self.pending_mps.items():
+            ready.setdefault(r, []).append(i)
+        for ref, ids in sorted(ready.items()):
             T_ref = self.kf_pose(ref)
-            pos = transform_points(T_ref, self.scale * np.asarray(p_ref)[None])[0]
+            if T_ref is None:
+                continue
+            ids.sort()
+            items = [self.pending_mps.pop(i) for i in ids]
+            P = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
+            pos = transform_points(T_ref, self.scale * P)
             ref_g = self.kf_gid(ref)
             if ref_g not in self.smap.kfs:
-                ref_g = self.removed[ref][0]
-            self.smap.add_map_point(ServerMapPoint(g, pos, np.asarray(desc, np.uint8), ref_g))
-            res.new_mps.append(g)
-            res.ack_mp_ids.append(i)
-            for kf_g, j in self.waiting_obs.pop(g, []):
-                if self.smap.add_observation(kf_g, j, g):
-                    res.changed_kfs.add(kf_g)
+                ref_g = self.removed[ref][0] if ref in self.removed else ref_g
+            for k, i in enumerate(ids):
+                g = gid(self.index, i)
+                desc = np.asarray(items[k][2], np.uint8)
+                self.smap.add_map_point(ServerMapPoint(g, pos[k], desc, ref_g))
+                res.new_mps.append(g)
+                res.ack_mp_ids.append(i)
+                for kf_g, j in self.waiting_obs.pop(g, ()):
+                    if self.smap.add_observation(kf_g, j, g):
+                        res.changed_kfs.add(kf_g)
 
     def _associate(self, skf: ServerKeyframe, mp_ids: np.ndarray, res: IngestResult) -> None:
         if len(mp_ids) != len(skf.mp):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
@@ -82,15 +83,28 @@ class ServerMap:
         if kf.gid in self.kfs:
             raise KeyError(f"keyframe {kf.gid} already in map {self.map_id}")
         self.kfs[kf.gid] = kf
-        self.covis[kf.gid] = Counter()
         self.agents.add(kf.agent)
         mp = kf.mp
+        g = kf.gid
+        pts = []
+        seen: set[int] = set()
         for j in np.nonzero(mp >= 0)[0].tolist():
-            p = self.mps.get(int(mp[j]))
-            if p is None or kf.gid in p.obs:
+            m = int(mp[j])
+            p = self.mps.get(m)
+            if p is None or m in seen:
                 mp[j] = NO_MP  # unknown point or a second keypoint on the same point
                 continue
-            self._observe(kf, j, p)
+            seen.add(m)
+            pts.append((j, p))
+        # A new keyframe has no edges yet: count all co-observers at C speed, then
+        # mirror the counts (this is the hot path of every keyframe insertion).
+        c = Counter(chain.from_iterable(p.obs for _, p in pts))
+        self.covis[g] = c
+        covis = self.covis
+        for o, n in c.items():
+            covis[o][g] = n
+        for j, p in pts:
+            p.obs[g] = j
         best = self.best_covisible(kf.gid, exclude_newer=False)
         if best is not None:
             kf.parent = best
