@@ -80,7 +80,7 @@ def test_up_serves_and_sigterm_leaves_no_orphans():
         assert health is not None, "api never answered"
         names = {Path(Path(f"/proc/{p}/cmdline").read_text().split("\0")[0]).name
                  for p in _descendants(proc.pid) if _alive(p)}  # fmt: skip
-        assert "redis-server" in names
+        assert any(n.startswith("redis-server") for n in names)
         assert len(_descendants(proc.pid)) >= 4  # redis, router, mapper, api
     finally:
         left = _stop(proc)

@@ -1,0 +1,27 @@
+"""JSON errors: every refusal has the same shape and is counted by reason."""
+
+from __future__ import annotations
+
+from fastapi import HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from .metrics import API_REJECTED
+
+
+class NotFound(HTTPException):
+    def __init__(self, what: str, ident: str) -> None:
+        super().__init__(404, detail=f"unknown {what} {ident!r}")
+        self.reason = f"unknown_{what}"
+
+
+async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
+    reason = getattr(exc, "reason", f"http_{exc.status_code}")
+    API_REJECTED.labels(reason).inc()
+    return JSONResponse({"error": str(exc.detail), "detail": None}, status_code=exc.status_code)
+
+
+async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    API_REJECTED.labels("malformed_request").inc()
+    detail = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", "")} for e in exc.errors()]
+    return JSONResponse({"error": "malformed request", "detail": detail}, status_code=422)

@@ -1,0 +1,50 @@
+"""/maps: server maps, their keyframes per agent and their point clouds."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from fastapi import APIRouter, Query
+
+from shared.store import Store
+
+from ..deps import StoreDep
+from ..errors import NotFound
+from ..models import MapOut, PointsOut
+
+router = APIRouter(prefix="/maps", tags=["maps"])
+
+
+def _map(store: Store, map_id: str) -> dict:
+    info = store.map_info(map_id)
+    if info is None:
+        raise NotFound("map", map_id)
+    return info
+
+
+@router.get("", response_model=list[MapOut])
+def list_maps(store: StoreDep) -> list[MapOut]:
+    return [MapOut(**i) for m in store.maps() if (i := store.map_info(m)) is not None]
+
+
+@router.get("/{map_id}", response_model=MapOut)
+def get_map(map_id: str, store: StoreDep) -> MapOut:
+    info = _map(store, map_id)
+    per_agent = Counter(a for a, _ in store.map_keyframes(map_id))
+    return MapOut(**info, keyframes_per_agent=dict(per_agent))
+
+
+@router.get("/{map_id}/points", response_model=PointsOut)
+def map_points(
+    map_id: str, store: StoreDep, limit: int = Query(20000, ge=1, le=1_000_000)
+) -> PointsOut:
+    """Map point positions in the map frame (every agent whose data is in the map)."""
+    info = _map(store, map_id)
+    pts: list[list[float]] = []
+    for a in info["agents"]:
+        _, rec = store.map_point_records(a)
+        pts.extend(rec["pos"].round(4).tolist())
+        if len(pts) >= limit:
+            break
+    pts = pts[:limit]
+    return PointsOut(map_id=map_id, n=len(pts), points=pts)

@@ -1,0 +1,47 @@
+"""WebSocket /ws/poses: every live pose the mapper places in a map, as JSON."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import redis.asyncio as aioredis
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+
+from shared.messages import DecodeError, unpackb
+from shared.store import POSE_CHANNEL
+
+from ..metrics import WS_CLIENTS
+from ..models import pose_out
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+
+
+@router.websocket("/ws/poses")
+async def ws_poses(ws: WebSocket) -> None:
+    await ws.accept()
+    WS_CLIENTS.inc()
+    r = aioredis.Redis.from_url(ws.app.state.settings.redis_url)
+    pubsub = r.pubsub()
+    await pubsub.subscribe(POSE_CHANNEL)
+    try:
+        # The subscription is live before the client hears anything, so a pose
+        # published after this message is never missed.
+        await ws.send_text(json.dumps({"type": "subscribed"}))
+        while True:
+            msg = await pubsub.get_message(ignore_subscribe_messages=True, timeout=1.0)
+            if msg is None:
+                continue
+            try:
+                doc = pose_out(unpackb(msg["data"]))
+            except (DecodeError, KeyError, TypeError, ValueError) as e:
+                log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
+                continue
+            await ws.send_text(json.dumps({"type": "pose", **doc.model_dump()}))
+    except WebSocketDisconnect:
+        pass
+    finally:
+        await pubsub.unsubscribe(POSE_CHANNEL)
+        await pubsub.aclose()
+        await r.aclose()
