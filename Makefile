@@ -19,12 +19,16 @@ demo: $(STAMP)
 	$(BIN)/hivemap demo
 
 # Debian's docker-compose (v1) validates docker-compose.yml where no compose v2
-# plugin exists; best effort: without root or apt the compose test says it skipped.
+# plugin exists, and promtool (package prometheus) checks the scrape config. Best
+# effort: without root or apt the tests that need them say they skipped.
 system-tools:
-	@if ! docker compose version >/dev/null 2>&1 && ! command -v docker-compose >/dev/null 2>&1 \
-	   && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq docker-compose) \
-	    >/dev/null 2>&1 || echo "note: could not install docker-compose; its test will skip"; \
+	@missing=""; \
+	if ! docker compose version >/dev/null 2>&1 && ! command -v docker-compose >/dev/null 2>&1; then \
+	  missing="$$missing docker-compose"; fi; \
+	command -v promtool >/dev/null 2>&1 || missing="$$missing prometheus"; \
+	if [ -n "$$missing" ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing) \
+	    >/dev/null 2>&1 || echo "note: could not install$$missing; their tests will skip"; \
 	fi
 
 test: $(STAMP) system-tools
