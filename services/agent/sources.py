@@ -1,0 +1,242 @@
+"""Image sources for the agent, behind one interface: ``open_source(spec)``.
+
+    euroc:PATH                 EuRoC ASL folder (PATH, PATH/mav0 or PATH/mav0/cam0)
+    tum:PATH[?calib=FILE]      TUM mono folder: rgb.txt + images, calibration yaml
+                               (default PATH/camera.yaml)
+    video:FILE[?calib=FILE]    a video file, calibration yaml (default FILE.yaml)
+    synthetic:MH01[?seed=S&every=K&frames=A:B]   rendered on the fly, with ground truth
+
+Calibration files use the EuRoC sensor.yaml keys (camera_model pinhole,
+intrinsics, distortion_coefficients radial-tangential, resolution). Every problem
+raises :class:`SourceError` naming the file.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import parse_qs
+
+import cv2
+import numpy as np
+
+from shared.camera import CalibrationError, PinholeRadTan
+from shared.trajectory import Trajectory, load_euroc_gt
+
+
+class SourceError(ValueError):
+    """A source that cannot be read: the message names the file."""
+
+
+@dataclass
+class Frame:
+    index: int
+    stamp_ns: int
+    image: np.ndarray  # uint8 grayscale
+
+
+def _calib(path: Path) -> PinholeRadTan:
+    try:
+        return PinholeRadTan.from_yaml(path)
+    except CalibrationError as e:
+        raise SourceError(str(e)) from e
+
+
+def _read_gray(path: Path, cam: PinholeRadTan) -> np.ndarray:
+    if not path.is_file():
+        raise SourceError(f"{path}: image file is missing")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise SourceError(f"{path}: not a readable image (corrupt or unsupported)")
+    if img.shape != (cam.height, cam.width):
+        raise SourceError(
+            f"{path}: image is {img.shape[1]}x{img.shape[0]}, calibration says "
+            f"{cam.width}x{cam.height}"
+        )
+    return img
+
+
+class ImageSource:
+    camera: PinholeRadTan
+    name: str
+    ground_truth: Trajectory | None = None
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+
+class EurocSource(ImageSource):
+    def __init__(self, path: str | Path) -> None:
+        p = Path(path)
+        for cand in (p / "mav0" / "cam0", p / "cam0", p):
+            if (cand / "data.csv").exists():
+                p = cand
+                break
+        else:
+            raise SourceError(f"{p / 'mav0/cam0/data.csv'}: no EuRoC cam0 index found")
+        self.root = p
+        self.name = f"euroc:{path}"
+        self.camera = _calib(p / "sensor.yaml")
+        self.items: list[tuple[int, Path]] = []
+        with open(p / "data.csv", newline="") as f:
+            for n, row in enumerate(csv.reader(f), start=1):
+                if not row or row[0].startswith("#"):
+                    continue
+                try:
+                    self.items.append((int(row[0]), p / "data" / row[1].strip()))
+                except (ValueError, IndexError) as e:
+                    raise SourceError(f"{p / 'data.csv'}:{n}: bad row {row!r}") from e
+        gt = p.parent / "state_groundtruth_estimate0" / "data.csv"
+        self.ground_truth = load_euroc_gt(gt) if gt.exists() else None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i, (t, path) in enumerate(self.items):
+            yield Frame(i, t, _read_gray(path, self.camera))
+
+
+class TumSource(ImageSource):
+    def __init__(self, path: str | Path, calib: str | None = None) -> None:
+        p = Path(path)
+        self.name = f"tum:{path}"
+        idx = p / "rgb.txt"
+        if not idx.is_file():
+            raise SourceError(f"{idx}: TUM index file is missing")
+        self.camera = _calib(Path(calib) if calib else p / "camera.yaml")
+        self.items: list[tuple[int, Path]] = []
+        for n, ln in enumerate(idx.read_text().splitlines(), start=1):
+            ln = ln.strip()
+            if not ln or ln.startswith("#"):
+                continue
+            parts = ln.split()
+            try:
+                sec, _, frac = parts[0].partition(".")
+                t = int(sec) * 1_000_000_000 + int((frac + "000000000")[:9])
+                self.items.append((t, p / parts[1]))
+            except (ValueError, IndexError) as e:
+                raise SourceError(f"{idx}:{n}: bad line {ln!r}") from e
+        gt = p / "groundtruth.txt"
+        if gt.exists():
+            from shared.trajectory import read_tum
+
+            self.ground_truth = read_tum(gt)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i, (t, path) in enumerate(self.items):
+            yield Frame(i, t, _read_gray(path, self.camera))
+
+
+class VideoSource(ImageSource):
+    def __init__(self, path: str | Path, calib: str | None = None) -> None:
+        self.path = Path(path)
+        self.name = f"video:{path}"
+        if not self.path.is_file():
+            raise SourceError(f"{self.path}: video file is missing")
+        self.camera = _calib(Path(calib) if calib else Path(str(self.path) + ".yaml"))
+        cap = cv2.VideoCapture(str(self.path))
+        ok = cap.isOpened()
+        self._n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if ok else 0
+        self._fps = cap.get(cv2.CAP_PROP_FPS) if ok else 0
+        cap.release()
+        if not ok:
+            raise SourceError(f"{self.path}: cannot be opened as a video")
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(str(self.path))
+        i = 0
+        try:
+            while True:
+                ok, img = cap.read()
+                if not ok:
+                    break
+                if img.ndim == 3:
+                    img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+                cam = self.camera
+                if img.shape != (cam.height, cam.width):
+                    raise SourceError(
+                        f"{self.path}: frame {i} is {img.shape[1]}x{img.shape[0]}, "
+                        f"calibration says {cam.width}x{cam.height}"
+                    )
+                t = int(round(i * 1e9 / self._fps)) if self._fps > 0 else i * 50_000_000
+                yield Frame(i, t, img)
+                i += 1
+        finally:
+            cap.release()
+        if i == 0:
+            raise SourceError(f"{self.path}: no frame could be decoded")
+
+
+class SyntheticSource(ImageSource):
+    """Renders the synthetic world along a real EuRoC trajectory, on the fly."""
+
+    def __init__(self, seq: str, seed: int = 0, every: int = 1, frames: str = "") -> None:
+        from shared.synthetic.render import Renderer
+        from shared.synthetic.world import World
+
+        try:
+            gt = load_euroc_gt(seq)
+        except ValueError as e:
+            raise SourceError(str(e)) from e
+        sl = _slice(frames)
+        idx = np.arange(len(gt))[sl][:: max(1, every)]
+        self.index = idx
+        self.ground_truth = Trajectory(gt.stamps_ns[idx], gt.poses[idx])
+        self.renderer = Renderer(World(seed))
+        self.camera = self.renderer.cam
+        self.name = f"synthetic:{seq}?seed={seed}"
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __iter__(self) -> Iterator[Frame]:
+        gt = self.ground_truth
+        for i, k in enumerate(self.index.tolist()):
+            img, _ = self.renderer.render(gt.poses[i], k)
+            yield Frame(i, int(gt.stamps_ns[i]), img)
+
+
+def _slice(spec: str) -> slice:
+    if not spec:
+        return slice(None)
+    a, _, b = spec.partition(":")
+    try:
+        return slice(int(a) if a else None, int(b) if b else None)
+    except ValueError as e:
+        raise SourceError(f"frames {spec!r}: expected A:B") from e
+
+
+def open_source(spec: str) -> ImageSource:
+    kind, sep, rest = spec.partition(":")
+    if not sep or not rest:
+        raise SourceError(f"source {spec!r}: expected euroc:PATH, tum:PATH, video:FILE or "
+                          "synthetic:MH01")  # fmt: skip
+    target, _, query = rest.partition("?")
+    q = {k: v[-1] for k, v in parse_qs(query).items()}
+    if kind == "euroc":
+        return EurocSource(target)
+    if kind == "tum":
+        return TumSource(target, q.get("calib"))
+    if kind == "video":
+        return VideoSource(target, q.get("calib"))
+    if kind == "synthetic":
+        try:
+            return SyntheticSource(target, int(q.get("seed", 0)), int(q.get("every", 1)),
+                                   q.get("frames", ""))  # fmt: skip
+        except ValueError as e:
+            if isinstance(e, SourceError):
+                raise
+            raise SourceError(f"source {spec!r}: {e}") from e
+    raise SourceError(f"source {spec!r}: unknown kind {kind!r}")
