@@ -1,0 +1,163 @@
+"""Server-mapping benchmark (server-mapping issue, items 2-4).
+
+latency: the real stack (`hivemap up` topology) with 1 and then 8 simulated agents
+  flying in real time; keyframe latency per agent, measured by the agent (publish ->
+  ack, a superset of the mapper's received -> stored -> acked) and by the mapper.
+scale: a simulated agent with 2 %/s scale drift on all of MH01, server trajectory
+  ATE with the scale correction on and off.
+redundancy: an agent that flies MH01 twice; keyframes culled and the ATE change.
+
+    .venv/bin/python bench/bench_mapper.py [--seconds 60] [--only latency|scale|redundancy]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import numpy as np  # noqa: E402
+from bench_demo import scrape  # noqa: E402
+from common import table, write_report  # noqa: E402
+
+from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from shared.redis_server import free_port  # noqa: E402
+from shared.settings import Settings  # noqa: E402
+from shared.trajectory import SEQUENCES, Trajectory, ate, load_euroc_gt  # noqa: E402
+
+
+def run_latency(n_agents: int, seconds: float) -> list[dict]:
+    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port())
+    stack = Stack(settings)
+    stack.start(with_api=False)
+    out = Path(tempfile.mkdtemp(prefix="hivemap-bench-"))
+    procs = []
+    try:
+        for i in range(n_agents):
+            seq = SEQUENCES[i % 5]
+            agent = f"a{n_agents}-{i}"
+            start = 200 * (i // 5)
+            argv = _hivemap_exe() + [
+                "sim-agent", "--id", agent, "--traj", seq, "--seed", str(i),
+                "--frames", f"{start}:{start + int(seconds * 20)}", "--out", str(out),
+            ]  # fmt: skip
+            env = {**os.environ, "HIVEMAP_ZENOH__CONNECT": json.dumps([stack.zenoh_endpoint]),
+                   "HIVEMAP_LOG_LEVEL": "WARNING"}  # fmt: skip
+            procs.append((agent, seq, subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)))
+        for _, _, p in procs:
+            p.wait(seconds * 3 + 120)
+        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+    finally:
+        for _, _, p in procs:
+            if p.poll() is None:
+                p.kill()
+        stack.stop()
+    rows = []
+    for agent, seq, _ in procs:
+        st = json.loads((out / f"{agent}_stats.json").read_text())
+        cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
+        tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+        rows.append({
+            "agents": n_agents, "agent": agent, "traj": seq, "keyframes": st["keyframes"],
+            "all_acked": st["all_acked"], "kf_per_s": st["keyframes"] / st["flight_s"],
+            "median_ms": 1e3 * st["ack_latency_median_s"],
+            "p95_ms": 1e3 * st["ack_latency_p95_s"],
+            "mapper_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
+            "bytes_per_s": st["bytes_per_s"],
+        })  # fmt: skip
+    return rows
+
+
+def run_scale() -> dict:
+    from test_server_map import _feed, _server_traj
+
+    from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+    from services.mapper.registration import AgentHandler, MapperParams
+    from services.mapper.server_map import ServerMap
+
+    gt = load_euroc_gt("MH01")
+    world = LandmarkWorld(0)
+    res = {}
+    for on in (False, True):
+        h = AgentHandler("A", 1, ServerMap("m"), params=MapperParams(scale_correction=on))
+        vo = _feed(h, SimAgent(gt, world, drift=DriftModel(scale_drift_per_s=0.02), seed=2))
+        res["on" if on else "off"] = ate(_server_traj(h), gt).rmse
+    res["vo"] = ate(vo, gt).rmse
+    res["ratio_off_over_on"] = res["off"] / res["on"]
+    res["pass"] = res["ratio_off_over_on"] >= 3
+    return res
+
+
+def run_redundancy() -> dict:
+    from test_server_map import _feed, _server_traj
+
+    from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+    from services.mapper.redundancy import find_redundant
+    from services.mapper.registration import AgentHandler
+    from services.mapper.server_map import ServerMap
+
+    gt = load_euroc_gt("MH01")
+    dt = gt.stamps_ns[-1] - gt.stamps_ns[0] + 50_000_000
+    two = Trajectory(np.concatenate([gt.stamps_ns, gt.stamps_ns + dt]),
+                     np.concatenate([gt.poses, gt.poses]))  # fmt: skip
+    h = AgentHandler("A", 1, ServerMap("m"))
+    _feed(h, SimAgent(two, LandmarkWorld(0), drift=DriftModel(), seed=5))
+    stamps = {k.id: k.stamp_ns for k in h.smap.kfs.values()}
+    before = ate(_server_traj(h), two).rmse
+    n0 = len(h.smap.kfs)
+    rng = random.Random(0)
+    for _ in range(3000):
+        for g in find_redundant(h.smap, rng, {h.kf_gid(h.latest_kf)}):
+            h.on_removed(h.smap.kfs[g])
+            h.smap.remove_keyframe(g)
+    ids = sorted(stamps)
+    full = Trajectory(np.array([stamps[i] for i in ids]), np.stack([h.kf_pose(i) for i in ids]))
+    after = ate(full, two).rmse
+    kept = ate(_server_traj(h), two).rmse
+    frac = 1 - len(h.smap.kfs) / n0
+    change = abs(after - before) / before
+    return {"keyframes": n0, "culled_fraction": frac, "ate_before": before, "ate_after": after,
+            "ate_kept_only": kept, "ate_change": change,
+            "pass": frac >= 0.10 and change <= 0.10}  # fmt: skip
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--only", default="")
+    args = ap.parse_args()
+    report: dict = {}
+    if args.only in ("", "latency"):
+        rows = run_latency(1, args.seconds) + run_latency(8, args.seconds)
+        report["latency"] = rows
+        print(table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
+                           "p95_ms", "mapper_mean_ms", "bytes_per_s", "all_acked"]))  # fmt: skip
+        one = rows[0]
+        eight = rows[1:]
+        report["latency_pass"] = {
+            "one_agent": one["median_ms"] <= 30 and one["p95_ms"] <= 100,
+            "eight_agents_p95_max_ms": max(r["p95_ms"] for r in eight),
+            "eight_agents": all(r["p95_ms"] <= 200 for r in eight),
+        }
+        print(report["latency_pass"])
+    if args.only in ("", "scale"):
+        report["scale"] = run_scale()
+        print("scale drift 2%/s:", report["scale"])
+    if args.only in ("", "redundancy"):
+        report["redundancy"] = run_redundancy()
+        print("redundancy (MH01 twice):", report["redundancy"])
+    path = write_report("mapper" + (f"_{args.only}" if args.only else ""), report)
+    print(f"written {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
