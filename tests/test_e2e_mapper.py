@@ -142,35 +142,47 @@ def test_garbage_on_every_subscribed_key_is_counted_and_service_keeps_serving(
         )  # fmt: skip
 
     kf_key, pose_key = keys.agent_kf("G"), keys.agent_pose("G")
+    ack_key = keys.agent_ack("G")
     before = rejected(kf_key), rejected(pose_key)
+    agent_labels = {"service": "agent", "key": ack_key, "reason": "invalid"}
+    agent_before = sample_value("hivemap_messages_rejected_total", agent_labels)
+    good = _gt("MH01", 1000, 1300)
+    valid = SimAgentRunner(settings, "G", SimAgent(good, world, drift=DriftModel.zero()), 2.0)
+    result = {}
+    t = threading.Thread(target=lambda: result.setdefault("stats", valid.run()))
+    t.start()
     with open_session(settings.zenoh) as session:
         bus = Bus(session, "test")
-        good = _gt("MH01", 1000, 1100)
-        valid = SimAgentRunner(settings, "G", SimAgent(good, world, drift=DriftModel.zero()), 0)
         # A well-formed batch of another agent sent on G's key is rejected too.
         sneaky = SimAgent(good, world, drift=DriftModel.zero())
         _, _, kf = sneaky.step()
         from shared.messages import KeyframeBatch
 
         spoof = KeyframeBatch("H", 0, 0, 0, [kf.kf]).encode()
+        deadline = time.monotonic() + 10
+        while not valid.comm.acked_kfs and time.monotonic() < deadline:
+            time.sleep(0.05)  # G is flying and subscribed to its acks
         for g in [*GARBAGE, spoof]:
             bus.put(kf_key, g)
             bus.put(pose_key, g)
         # The agent's own subscription (acks) gets garbage as well.
         for g in GARBAGE:
-            bus.put(keys.agent_ack("G"), g)
+            bus.put(ack_key, g)
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and (
             rejected(kf_key) - before[0] < len(GARBAGE) + 1
             or rejected(pose_key) - before[1] < len(GARBAGE) + 1
         ):
             time.sleep(0.05)
-        assert rejected(kf_key) - before[0] == len(GARBAGE) + 1
-        assert rejected(pose_key) - before[1] == len(GARBAGE) + 1
         bus.close()
+    t.join(60)
+    assert rejected(kf_key) - before[0] == len(GARBAGE) + 1
+    assert rejected(pose_key) - before[1] == len(GARBAGE) + 1
+    agent_after = sample_value("hivemap_messages_rejected_total", agent_labels)
+    assert agent_after - agent_before == len(GARBAGE)
     assert Store(connect(settings.redis_url)).keyframe_ids("H") == []
-    # The mapper still serves: a valid agent afterwards is fully stored.
-    stats = valid.run()
+    # Both services kept serving: the valid agent was fully stored and acked.
+    stats = result["stats"]
     assert stats.all_acked and stats.keyframes > 0
 
 

@@ -149,7 +149,8 @@ class SimAgentRunner:
                 self.comm.record_sent(len(data))
             while True:
                 try:
-                    self._on_ack(ack_q.get_nowait().payload, kf_key)
+                    item = ack_q.get_nowait()
+                    self._on_ack(item.payload, item.key)
                 except queue.Empty:
                     break
             if until is None:
@@ -160,13 +161,14 @@ class SimAgentRunner:
             next_send = self.comm.last_send + self.comm.min_interval - time.monotonic()
             wait = min(remaining, max(next_send, 0.002), 0.05)
             with contextlib.suppress(queue.Empty):
-                self._on_ack(ack_q.get(timeout=wait).payload, kf_key)
+                item = ack_q.get(timeout=wait)
+                self._on_ack(item.payload, item.key)
 
     def _on_ack(self, payload: bytes, key: str) -> None:
         try:
             ack = Ack.decode(payload)
         except DecodeError as e:
-            REJECTED.labels("agent", key, "malformed").inc()
+            REJECTED.labels("agent", key, "invalid").inc()
             log.warning("bad ack: %s", e)
             return
         for lat in self.comm.on_ack(ack, time.monotonic()):
