@@ -1,0 +1,352 @@
+"""Keyframe-based monocular visual odometry (CCM-SLAM §4.1, the ORB-SLAM front end).
+
+Tracking per frame: constant-velocity prediction, projection search of the local
+map points, robust pose refinement (two passes), keyframe decision. Mapping per
+keyframe: triangulation of new points against the previous keyframes, point
+culling, local bundle adjustment (GTSAM). Relocalization against recent keyframes
+when tracking is lost. Pure algorithm: images in, poses and keyframes out.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.camera import PinholeRadTan
+from shared.geometry import se3_inv
+
+from .features import Extractor, Features, hamming, match_by_projection, match_descriptors
+from .geometry import solve_pnp, triangulate, two_view_init
+from .local_ba import local_ba
+
+
+@dataclass
+class VOParams:
+    n_features: int = 1000
+    window: int = 7  # keyframes in local BA
+    local_kfs: int = 10  # keyframes whose points are searched while tracking
+    search_radius: float = 12.0
+    min_inliers: int = 40
+    kf_min_frames: int = 4
+    kf_max_frames: int = 12
+    kf_inlier_ratio: float = 0.7
+    ba: bool = True
+
+
+@dataclass
+class KeyFrame:
+    id: int
+    stamp_ns: int
+    T_w_c: np.ndarray
+    f: Features
+    mp: np.ndarray  # (N,) int64 map point per keypoint, -1 none
+
+
+@dataclass
+class MapPoint:
+    id: int
+    pos: np.ndarray
+    desc: np.ndarray
+    obs: dict[int, int] = field(default_factory=dict)  # kf id -> keypoint
+    visible: int = 1
+    found: int = 1
+    first_kf: int = 0
+
+
+@dataclass
+class FrameResult:
+    stamp_ns: int
+    T_w_c: np.ndarray | None
+    state: str  # init | ok | lost
+    inliers: int = 0
+    keyframe: KeyFrame | None = None
+    new_points: list[int] = field(default_factory=list)
+    track_s: float = 0.0
+    map_s: float = 0.0
+
+
+class VisualOdometry:
+    def __init__(self, camera: PinholeRadTan, params: VOParams | None = None) -> None:
+        self.cam = camera
+        self.p = params or VOParams()
+        self.extract = Extractor(camera, self.p.n_features)
+        self.kfs: dict[int, KeyFrame] = {}
+        self.mps: dict[int, MapPoint] = {}
+        self.next_kf = 0
+        self.next_mp = 0
+        self.state = "init"
+        self.init_ref: tuple[int, Features] | None = None
+        self.init_age = 0
+        self.T_last: np.ndarray | None = None
+        self.velocity = np.eye(4)
+        self.frames_since_kf = 0
+        self.kf_inliers = 0
+        self.lost_frames = 0
+
+    # --- public -----------------------------------------------------------------------------
+    def track(self, img: np.ndarray, stamp_ns: int) -> FrameResult:
+        t0 = time.perf_counter()
+        f = self.extract(img)
+        step = self._initialize if self.state == "init" else self._track
+        res = step(f, stamp_ns)
+        res.track_s = time.perf_counter() - t0 - res.map_s
+        return res
+
+    @property
+    def last_kf(self) -> KeyFrame:
+        return self.kfs[max(self.kfs)]
+
+    # --- initialization ---------------------------------------------------------------------
+    def _initialize(self, f: Features, stamp: int) -> FrameResult:
+        if self.init_ref is None or self.init_age > 40 or len(self.init_ref[1]) < 300:
+            self.init_ref = (stamp, f)
+            self.init_age = 0
+            return FrameResult(stamp, None, "init")
+        self.init_age += 1
+        s0, f0 = self.init_ref
+        a, b = match_descriptors(f0.desc, f.desc, ratio=0.8, max_dist=60)
+        if len(a) < 150:
+            return FrameResult(stamp, None, "init")
+        tv = two_view_init(f0.xy[a], f.xy[b], self.cam.fx, min_inliers=120, min_parallax_deg=1.5)
+        if not tv.ok:
+            return FrameResult(stamp, None, "init")
+        g = tv.good
+        depth = np.median(tv.points[g, 2])
+        s = 1.0 / depth  # median scene depth 1, as ORB-SLAM
+        T1 = tv.T_c1_c2.copy()
+        T1[:3, 3] *= s
+        kf0 = self._new_kf(s0, np.eye(4), f0)
+        kf1 = self._new_kf(stamp, T1, f)
+        new = []
+        for i in np.nonzero(g)[0]:
+            mp = self._new_mp(tv.points[i] * s, f.desc[b[i]], kf0.id)
+            self._observe(kf0, int(a[i]), mp)
+            self._observe(kf1, int(b[i]), mp)
+            new.append(mp.id)
+        t = time.perf_counter()
+        if self.p.ba:
+            self._local_ba(kf1)
+        self.state = "ok"
+        self.T_last = kf1.T_w_c
+        self.velocity = se3_inv(kf0.T_w_c) @ kf1.T_w_c
+        self.kf_inliers = len(new)
+        self.frames_since_kf = 0
+        r = FrameResult(stamp, kf1.T_w_c.copy(), "ok", len(new), kf1, new)
+        r.map_s = time.perf_counter() - t
+        self.init_kf0 = kf0
+        return r
+
+    # --- tracking ---------------------------------------------------------------------------
+    def _local_points(self) -> np.ndarray:
+        ids = sorted(self.kfs)[-self.p.local_kfs :]
+        pts = set()
+        for k in ids:
+            m = self.kfs[k].mp
+            pts.update(m[m >= 0].tolist())
+        return np.array(sorted(p for p in pts if p in self.mps), np.int64)
+
+    def _project(self, T_w_c: np.ndarray, pids: np.ndarray):
+        P = np.array([self.mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
+        Xc = (P - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+        uv, ok = self.cam.project(Xc, min_depth=0.05)
+        return P, uv, ok
+
+    def _search(self, f: Features, T: np.ndarray, pids: np.ndarray, radius: float):
+        P, uv, ok = self._project(T, pids)
+        if not ok.any():
+            return np.zeros(0, int), np.zeros(0, int), P
+        sel = np.nonzero(ok)[0]
+        desc = np.array([self.mps[i].desc for i in pids[sel].tolist()], np.uint8)
+        pi, kp = match_by_projection(f, uv[sel], desc, radius)
+        for i in pids[sel].tolist():
+            self.mps[i].visible += 1
+        return sel[pi], kp, P
+
+    def _track(self, f: Features, stamp: int) -> FrameResult:
+        pids = self._local_points()
+        T_pred = self.T_last @ self.velocity
+        res = None
+        for radius in (self.p.search_radius, 3 * self.p.search_radius):
+            pi, kp, P = self._search(f, T_pred, pids, radius)
+            if len(pi) >= self.p.min_inliers:
+                r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T_pred)
+                if r.ok and r.inliers.sum() >= self.p.min_inliers:
+                    res = r
+                    break
+        if res is None:
+            res, pi, kp, P = self._relocalize(f, pids)
+            if res is None:
+                self.lost_frames += 1
+                self.state = "lost"
+                # Keep predicting so the trajectory continues and the search can recover.
+                self.T_last = T_pred
+                return FrameResult(stamp, T_pred.copy(), "lost")
+        # Second pass: with the refined pose, a tighter search finds more points.
+        pi2, kp2, P2 = self._search(f, res.T_w_c, pids, 4.0)
+        if len(pi2) >= self.p.min_inliers:
+            r2 = solve_pnp(P2[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
+            if r2.ok and r2.inliers.sum() >= res.inliers.sum() * 0.8:
+                res, pi, kp = r2, pi2, kp2
+        inl = res.inliers
+        for i in pids[pi[inl]].tolist():
+            self.mps[i].found += 1
+        self.state = "ok"
+        self.lost_frames = 0
+        T = res.T_w_c
+        self.velocity = se3_inv(self.T_last) @ T
+        self.T_last = T
+        self.frames_since_kf += 1
+        n_in = int(inl.sum())
+        out = FrameResult(stamp, T.copy(), "ok", n_in)
+        if self._need_kf(n_in):
+            t = time.perf_counter()
+            kf = self._new_kf(stamp, T, f)
+            for i, k in zip(pids[pi[inl]].tolist(), kp[inl].tolist(), strict=True):
+                if k not in kf.f_taken:
+                    self._observe(kf, k, self.mps[i])
+            out.new_points = self._triangulate(kf)
+            if self.p.ba:
+                self._local_ba(kf)
+            self._cull_points(kf)
+            self.T_last = kf.T_w_c
+            out.T_w_c = kf.T_w_c.copy()
+            out.keyframe = kf
+            self.kf_inliers = n_in
+            self.frames_since_kf = 0
+            out.map_s = time.perf_counter() - t
+        return out
+
+    def _need_kf(self, n_in: int) -> bool:
+        n = self.frames_since_kf
+        if n < self.p.kf_min_frames:
+            return n_in < self.p.min_inliers * 2
+        return n >= self.p.kf_max_frames or n_in < self.p.kf_inlier_ratio * self.kf_inliers
+
+    def _relocalize(self, f: Features, pids: np.ndarray):
+        for k in sorted(self.kfs, reverse=True)[:5]:
+            kf = self.kfs[k]
+            has = np.nonzero(kf.mp >= 0)[0]
+            if len(has) < 30:
+                continue
+            a, b = match_descriptors(kf.f.desc[has], f.desc, ratio=0.8)
+            if len(a) < 30:
+                continue
+            mp_ids = kf.mp[has[a]]
+            P = np.array([self.mps[i].pos for i in mp_ids.tolist()])
+            r = solve_pnp(P, f.xy[b], self.cam.fx)
+            if r.ok and r.inliers.sum() >= self.p.min_inliers:
+                idx = np.searchsorted(pids, mp_ids)
+                idx = np.clip(idx, 0, max(len(pids) - 1, 0))
+                Pall = np.array([self.mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
+                keep = (
+                    (len(pids) > 0) & (pids[idx] == mp_ids)
+                    if len(pids)
+                    else np.zeros(len(mp_ids), bool)
+                )
+                r2 = solve_pnp(P, f.xy[b], self.cam.fx, T_guess=r.T_w_c)
+                r = r2 if r2.ok else r
+                r.inliers = r.inliers & keep
+                return r, idx, b, Pall
+        return None, None, None, None
+
+    # --- mapping ----------------------------------------------------------------------------
+    def _new_kf(self, stamp: int, T: np.ndarray, f: Features) -> KeyFrame:
+        kf = KeyFrame(self.next_kf, stamp, T.copy(), f, np.full(len(f), -1, np.int64))
+        kf.f_taken = set()
+        self.kfs[kf.id] = kf
+        self.next_kf += 1
+        return kf
+
+    def _new_mp(self, pos: np.ndarray, desc: np.ndarray, kf_id: int) -> MapPoint:
+        mp = MapPoint(self.next_mp, np.asarray(pos, float), desc.copy(), first_kf=kf_id)
+        self.mps[mp.id] = mp
+        self.next_mp += 1
+        return mp
+
+    def _observe(self, kf: KeyFrame, k: int, mp: MapPoint) -> None:
+        kf.mp[k] = mp.id
+        kf.f_taken.add(k)
+        mp.obs[kf.id] = k
+
+    def _triangulate(self, kf: KeyFrame) -> list[int]:
+        new = []
+        free_new = np.nonzero(kf.mp < 0)[0]
+        for k in sorted(self.kfs, reverse=True)[1:3]:
+            old = self.kfs[k]
+            free_old = np.nonzero(old.mp < 0)[0]
+            if len(free_old) < 10 or len(free_new) < 10:
+                continue
+            a, b = match_descriptors(old.f.desc[free_old], kf.f.desc[free_new], ratio=0.75,
+                                     max_dist=50)  # fmt: skip
+            if len(a) < 5:
+                continue
+            ia, ib = free_old[a], free_new[b]
+            tri = triangulate(old.T_w_c, kf.T_w_c, old.f.xy[ia], kf.f.xy[ib], self.cam.fx,
+                              max_err_px=2.0, min_parallax_deg=1.0)  # fmt: skip
+            for j in np.nonzero(tri.good)[0].tolist():
+                if kf.mp[ib[j]] >= 0 or old.mp[ia[j]] >= 0:
+                    continue
+                mp = self._new_mp(tri.points[j], kf.f.desc[ib[j]], kf.id)
+                self._observe(old, int(ia[j]), mp)
+                self._observe(kf, int(ib[j]), mp)
+                new.append(mp.id)
+            free_new = np.nonzero(kf.mp < 0)[0]
+        return new
+
+    def _cull_points(self, kf: KeyFrame) -> None:
+        for i in list(self.mps):
+            mp = self.mps[i]
+            age = kf.id - mp.first_kf
+            if age >= 2 and (mp.found / max(mp.visible, 1) < 0.25 or len(mp.obs) < 2):
+                self._remove_mp(i)
+
+    def _remove_mp(self, i: int) -> None:
+        mp = self.mps.pop(i)
+        for k, j in mp.obs.items():
+            kf = self.kfs.get(k)
+            if kf is not None and kf.mp[j] == i:
+                kf.mp[j] = -1
+
+    def _local_ba(self, kf: KeyFrame) -> None:
+        win = sorted(self.kfs)[-self.p.window :]
+        pts = set()
+        for k in win:
+            m = self.kfs[k].mp
+            pts.update(m[m >= 0].tolist())
+        pts = {i for i in pts if i in self.mps}
+        obs = []
+        fixed = set(win[:2]) if len(win) > 2 else {win[0]}
+        kf_ids = set(win)
+        for i in pts:
+            mp = self.mps[i]
+            for k, j in mp.obs.items():
+                if k in self.kfs:
+                    obs.append((k, i, self.kfs[k].f.xy[j]))
+                    if k not in kf_ids:
+                        kf_ids.add(k)
+                        fixed.add(k)
+        if len(pts) < 20:
+            return
+        poses = {k: self.kfs[k].T_w_c for k in kf_ids}
+        r = local_ba(poses, fixed, {i: self.mps[i].pos for i in pts}, obs, self.cam.fx,
+                     max_iters=5)  # fmt: skip
+        for k, T in r.poses.items():
+            self.kfs[k].T_w_c = T
+        for i, p in r.points.items():
+            self.mps[i].pos = p
+        for k, i in r.outliers:
+            mp = self.mps.get(i)
+            if mp is not None and k in mp.obs:
+                j = mp.obs.pop(k)
+                if self.kfs[k].mp[j] == i:
+                    self.kfs[k].mp[j] = -1
+
+
+def keyframe_observed(kf: KeyFrame) -> int:
+    return int((kf.mp >= 0).sum())
+
+
+__all__ = ["VisualOdometry", "VOParams", "FrameResult", "KeyFrame", "MapPoint", "hamming",
+           "keyframe_observed"]  # fmt: skip
