@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "services.launcher",  # up, demo, router
     "services.mapper.cli",  # mapper
     "services.api.cli",  # api
+    "services.agent.cli",  # agent
     "services.agent.sim_cli",  # sim-agent
     "services.export_cli",  # export
     "shared.synthetic.cli",  # sim render

@@ -73,6 +73,7 @@ class CommModule:
         self.kf_updates: dict[int, KeyframeUpdate] = {}
         self.mp_updates: dict[int, tuple[int, np.ndarray]] = {}
         self.acked_kfs: set[int] = set()
+        self.forgotten: set[int] = set()  # dropped unacknowledged (may still arrive)
         self._last_seq_by_kf: dict[int, int] = {}
         self.resent_reasons: dict[tuple[str, str], int] = {}
         self.stats = CommStats()
@@ -110,11 +111,17 @@ class CommModule:
         if kf_id in self.kfs:
             del self.kfs[kf_id]
             self.stats.kf_dropped_unacked += 1
+            self.forgotten.add(kf_id)
         self.sent_kfs.pop(kf_id, None)
         i = bisect.bisect_left(self.queued_kfs, kf_id)
         if i < len(self.queued_kfs) and self.queued_kfs[i] == kf_id:
             self.queued_kfs.pop(i)
         self.kf_updates.pop(kf_id, None)
+
+    def forget_map_point(self, mp_id: int) -> None:
+        self.mps.pop(mp_id, None)
+        self.queued_mps.discard(mp_id)
+        self.sent_mps.pop(mp_id, None)
 
     @property
     def unacked_kf_ids(self) -> set[int]:

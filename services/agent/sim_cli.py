@@ -17,6 +17,8 @@ def cmd_sim_agent(args: argparse.Namespace, settings: Settings) -> int:
     from .sim_agent import DriftModel, LandmarkWorld, SimAgent
     from .sim_runner import SimAgentRunner
 
+    if args.count > 1:
+        return _run_many(args, settings)
     drift = DriftModel.zero() if args.zero_noise else DriftModel(
         scale_drift_per_s=args.scale_drift)  # fmt: skip
     gt = load_euroc_gt(args.traj)
@@ -46,6 +48,53 @@ def cmd_sim_agent(args: argparse.Namespace, settings: Settings) -> int:
     return 0 if stats.all_acked or stop.is_set() else 3
 
 
+def _run_many(args: argparse.Namespace, settings: Settings) -> int:
+    """N agents in one process over one Zenoh session: the load-test mode (each agent
+    costs a few percent of a core, so tens fit on one)."""
+    from shared.trajectory import Trajectory, load_euroc_gt
+    from shared.transport import Bus, open_session
+
+    from .sim_agent import DriftModel, LandmarkWorld, SimAgent
+    from .sim_runner import SimAgentRunner
+
+    world = LandmarkWorld(args.world_seed)
+    seqs = args.traj.split(",")
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    results: dict[str, dict] = {}
+    with open_session(settings.zenoh) as session:
+        bus = Bus(session, "agent", settings.inject)
+        threads = []
+        for i in range(args.count):
+            agent = f"{args.id}-{i}"
+            gt = load_euroc_gt(seqs[i % len(seqs)])
+            a, _, b = (args.frames or ":").partition(":")
+            sl = slice(int(a) if a else None, int(b) if b else None)
+            gt = Trajectory(gt.stamps_ns[sl], gt.poses[sl])
+            drift = DriftModel.zero() if args.zero_noise else DriftModel(
+                scale_drift_per_s=args.scale_drift)  # fmt: skip
+            sim = SimAgent(gt, world, drift=drift, seed=args.seed + i)
+            runner = SimAgentRunner(settings, agent, sim, speed=args.speed, stop=stop,
+                                    flush_timeout_s=args.flush_timeout)  # fmt: skip
+            t = threading.Thread(
+                target=lambda r=runner, a=agent: results.__setitem__(a, r.run(bus).to_dict())
+            )
+            threads.append(t)
+            t.start()
+        for t in threads:
+            t.join()
+        bus.close()
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        for agent, st in results.items():
+            (out / f"{agent}_stats.json").write_text(json.dumps(st, indent=2))
+    for st in results.values():
+        print(json.dumps(st), flush=True)
+    return 0 if all(st["all_acked"] for st in results.values()) or stop.is_set() else 3
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sim-agent", help="simulated agent: keyframes from a EuRoC trajectory")
     p.add_argument("--id", required=True, help="agent id")
@@ -58,4 +107,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", default="", help="A:B slice of the trajectory")
     p.add_argument("--flush-timeout", type=float, default=30.0)
     p.add_argument("--out", default="", help="write estimate/GT TUM and stats here")
+    p.add_argument(
+        "--count",
+        type=int,
+        default=1,
+        help="run N agents ID-0..ID-N-1 in this process; --traj may list several",
+    )
     p.set_defaults(func=cmd_sim_agent)

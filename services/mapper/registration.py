@@ -90,6 +90,7 @@ class AgentHandler:
         self.pending_since: dict[int, float] = {}
         self.pending_mps: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self.waiting_obs: dict[int, list[tuple[int, int]]] = {}  # mp gid -> [(kf gid, kp)]
+        self.to_fuse: list[int] = []
         self.kf_ref = -1
         self.latest_kf = -1
         self.first_kf = -1
@@ -215,11 +216,14 @@ class AgentHandler:
                     T = self.S_m_l.transform_pose(kf.T_l_kf)
                 else:
                     T = self._chain(kf.pred_id, kf.T_pred_kf, kf.parent_id, kf.T_par_kf)
-                if (
-                    T is None
-                    and now - self.pending_since.get(kid, now) > self.params.orphan_after_s
-                ):
+                waited = now - self.pending_since.get(kid, now) > self.params.orphan_after_s
+                if T is None and waited:
                     T = self._anchor(kf)
+                    if T is None and not self.local_poses and kid == min(self.pending_kfs):
+                        # The agent's first keyframes never came (its buffer dropped
+                        # them while no server was up): the oldest one that did
+                        # arrive seeds the map.
+                        T = self.S_m_l.transform_pose(kf.T_l_kf)
                     res.orphans_anchored += T is not None
                 if T is None:
                     continue
@@ -277,12 +281,25 @@ class AgentHandler:
         res.ack_kf_ids.append(kf.id)
         self._attach_ready_mps(res)
         if self.params.fuse:
-            n, changed, removed, aliases = fuse_by_projection(self.smap, skf, cam)
+            self.to_fuse.append(skf.gid)
+
+    def fuse_new(self) -> IngestResult:
+        """Duplicate-point fusion for the keyframes registered since the last call.
+        Kept out of :meth:`ingest` so it never delays an acknowledgment."""
+        res = IngestResult()
+        todo, self.to_fuse = self.to_fuse, []
+        for g in todo:
+            skf = self.smap.kfs.get(g)
+            if skf is None:
+                continue
+            n, changed, removed, aliases = fuse_by_projection(self.smap, skf, self.camera)
             res.fused += n
             res.changed_kfs |= changed
             res.removed_mps |= removed
             res.aliases.update(aliases)
             self.aliases.update(aliases)
+        res.changed_kfs &= set(self.smap.kfs)
+        return res
 
     def _kappa(self, kf: NewKeyframe) -> float:
         """CSfM's smoothing factor is per keyframe at its ~10 Hz keyframe rate; our agents

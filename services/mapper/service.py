@@ -213,6 +213,12 @@ class MapperService:
         now_ns = time.time_ns()
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
+        if h.to_fuse:
+            fres = h.fuse_new()
+            if fres.changed:
+                pipe = self.store.pipeline()
+                persist.write_result(pipe, h, fres, self.names)
+                pipe.execute()
         STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
         STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
         MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))

@@ -344,9 +344,27 @@ class VisualOdometry:
                     self.kfs[k].mp[j] = -1
 
 
+def remove_keyframe(vo: VisualOdometry, kf_id: int) -> list[int]:
+    """Drop a keyframe from the local map (trimming); returns map points left with no
+    observation, which are removed too."""
+    kf = vo.kfs.pop(kf_id, None)
+    if kf is None:
+        return []
+    dead = []
+    for j in np.nonzero(kf.mp >= 0)[0].tolist():
+        mp = vo.mps.get(int(kf.mp[j]))
+        if mp is None:
+            continue
+        mp.obs.pop(kf_id, None)
+        if not mp.obs:
+            del vo.mps[mp.id]
+            dead.append(mp.id)
+    return dead
+
+
 def keyframe_observed(kf: KeyFrame) -> int:
     return int((kf.mp >= 0).sum())
 
 
 __all__ = ["VisualOdometry", "VOParams", "FrameResult", "KeyFrame", "MapPoint", "hamming",
-           "keyframe_observed"]  # fmt: skip
+           "keyframe_observed", "remove_keyframe"]  # fmt: skip

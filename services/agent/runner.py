@@ -1,0 +1,288 @@
+"""The real agent: image source -> VO -> bounded local map -> communication module.
+
+The VO never waits for the network: the Zenoh session is opened in the background
+(a client retries until a router is reachable), and until then keyframes and map
+points wait in the communication module, bounded by the local map's buffer rules
+(CCM-SLAM §4.2). Every frame's online pose goes to a TUM file.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shared import keys
+from shared.geometry import se3_inv
+from shared.messages import Ack, DecodeError, KeyframeUpdate, MapPoints, NewKeyframe, PoseUpdate
+from shared.metrics import AGENT_ACK_LATENCY, REJECTED
+from shared.settings import Settings
+from shared.trajectory import Trajectory, format_tum
+
+from .comm import CommModule
+from .local_map_trim import KfInfo, trim
+from .sources import ImageSource
+from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class AgentStats:
+    frames: int = 0
+    keyframes: int = 0
+    lost_frames: int = 0
+    longest_lost_s: float = 0.0
+    track_ms: list[float] = field(default_factory=list)
+    map_ms: list[float] = field(default_factory=list)
+    kf_trimmed: int = 0
+    kf_lost_unacked: int = 0
+
+    def summary(self) -> dict:
+        t = np.array(self.track_ms) if self.track_ms else np.zeros(1)
+        m = np.array(self.map_ms) if self.map_ms else np.zeros(1)
+        return {
+            "frames": self.frames, "keyframes": self.keyframes, "lost_frames": self.lost_frames,
+            "longest_lost_s": self.longest_lost_s,
+            "track_ms_median": float(np.median(t)), "track_ms_p95": float(np.percentile(t, 95)),
+            "map_ms_per_kf_median": float(np.median(m)),
+            "map_ms_per_kf_p95": float(np.percentile(m, 95)),
+            "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
+        }  # fmt: skip
+
+
+class Agent:
+    def __init__(self, settings: Settings, agent_id: str, source: ImageSource,
+                 use_server: bool = True, realtime: bool = False, n_local: int = 50,
+                 n_buffer: int = 50, vo_params: VOParams | None = None) -> None:  # fmt: skip
+        keys.check_id(agent_id, "agent")
+        self.settings = settings
+        self.agent = agent_id
+        self.source = source
+        self.use_server = use_server
+        self.realtime = realtime
+        self.n_local, self.n_buffer = n_local, n_buffer
+        self.vo = VisualOdometry(source.camera, vo_params)
+        c = settings.comm
+        self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
+        self.stats = AgentStats()
+        self.poses: list[tuple[int, np.ndarray]] = []
+        self.bus = None
+        self._session = None
+        self._ack_q: queue.Queue = queue.Queue()
+        self._sent_kfs: set[int] = set()
+        self._stop = threading.Event()
+
+    # --- network (background) -----------------------------------------------------------
+    def _connect(self) -> None:
+        from shared.transport import Bus, open_session
+
+        zs = self.settings.zenoh.model_copy(update={"connect_timeout_ms": -1})
+        try:
+            session = open_session(zs)
+        except Exception:
+            log.exception("zenoh session failed; flying without a server")
+            return
+        if self._stop.is_set():
+            session.close()
+            return
+        self._session = session
+        bus = Bus(session, "agent", self.settings.inject)
+        bus.subscribe(keys.agent_ack(self.agent), self._ack_q)
+        self.bus = bus
+        log.info("connected to the server", extra={"agent": self.agent})
+
+    # --- main loop ------------------------------------------------------------------------
+    def run(self) -> AgentStats:
+        if self.use_server:
+            threading.Thread(target=self._connect, name="agent-connect", daemon=True).start()
+        t_start = time.monotonic()
+        stamp0 = None
+        lost_since = None
+        for fr in self.source:
+            if self._stop.is_set():
+                break
+            if self.realtime:
+                stamp0 = fr.stamp_ns if stamp0 is None else stamp0
+                due = t_start + (fr.stamp_ns - stamp0) * 1e-9
+                while time.monotonic() < due:
+                    self._service(min(due - time.monotonic(), 0.02))
+            r = self.vo.track(fr.image, fr.stamp_ns)
+            self.stats.frames += 1
+            self.stats.track_ms.append(r.track_s * 1e3)
+            if r.T_w_c is not None:
+                self.poses.append((fr.stamp_ns, r.T_w_c))
+            if r.state == "lost":
+                self.stats.lost_frames += 1
+                lost_since = fr.stamp_ns if lost_since is None else lost_since
+                self.stats.longest_lost_s = max(self.stats.longest_lost_s,
+                                                (fr.stamp_ns - lost_since) * 1e-9)  # fmt: skip
+            else:
+                lost_since = None
+            if r.keyframe is not None:
+                self.stats.keyframes += 1
+                self.stats.map_ms.append(r.map_s * 1e3)
+                self._on_keyframe(r)
+            self._publish_pose(r)
+            self._service(0.0)
+        deadline = time.monotonic() + 30
+        while self._flushing() and time.monotonic() < deadline:
+            self._service(0.05)
+        self.stats.kf_lost_unacked = self.comm.stats.kf_dropped_unacked
+        return self.stats
+
+    def _flushing(self) -> bool:
+        """After the last frame: keep going while a server may still take our data."""
+        return self.use_server and (self.bus is None or self.comm.pending)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.bus is not None:
+            self.bus.close()
+        if self._session is not None:
+            self._session.close()
+
+    def _service(self, wait: float) -> None:
+        try:
+            item = self._ack_q.get(timeout=wait) if wait > 0 else self._ack_q.get_nowait()
+            self._on_ack(item.payload, item.key)
+            while True:
+                item = self._ack_q.get_nowait()
+                self._on_ack(item.payload, item.key)
+        except queue.Empty:
+            pass
+        if self.bus is None:
+            return
+        now = time.monotonic()
+        self.comm.check_timeouts(now)
+        msg = self.comm.next_message(now, time.time_ns(), max(self.vo.kfs, default=-1))
+        if msg is not None:
+            data = msg.encode()
+            self.bus.put(keys.agent_kf(self.agent), data)
+            self.comm.record_sent(len(data))
+
+    def _on_ack(self, payload: bytes, key: str) -> None:
+        try:
+            ack = Ack.decode(payload)
+        except DecodeError as e:
+            REJECTED.labels("agent", key, "invalid").inc()
+            log.warning("bad ack: %s", e)
+            return
+        for lat in self.comm.on_ack(ack, time.monotonic()):
+            AGENT_ACK_LATENCY.labels(self.agent).observe(lat)
+
+    def _publish_pose(self, r: FrameResult) -> None:
+        if self.bus is None or r.T_w_c is None or not self.vo.kfs:
+            return
+        ref = self.vo.kfs[max(self.vo.kfs)]
+        msg = PoseUpdate(self.agent, r.stamp_ns, r.T_w_c, ref.id, se3_inv(ref.T_w_c) @ r.T_w_c,
+                         r.state)  # fmt: skip
+        self.bus.put(keys.agent_pose(self.agent), msg.encode(), reliable=False)
+
+    # --- local map -> messages ------------------------------------------------------------
+    def _parent(self, kf: KeyFrame) -> int:
+        counts: dict[int, int] = {}
+        for i in kf.mp[kf.mp >= 0].tolist():
+            mp = self.vo.mps.get(i)
+            if mp is None:
+                continue
+            for k in mp.obs:
+                if k != kf.id:
+                    counts[k] = counts.get(k, 0) + 1
+        return max(counts, key=counts.get) if counts else -1
+
+    def _rel(self, kf: KeyFrame, other: int) -> np.ndarray:
+        o = self.vo.kfs.get(other)
+        return np.eye(4) if o is None else se3_inv(o.T_w_c) @ kf.T_w_c
+
+    def _on_keyframe(self, r: FrameResult) -> None:
+        vo = self.vo
+        kf = r.keyframe
+        ids = sorted(vo.kfs)
+        # The first two keyframes come from initialization together.
+        new = [k for k in ids if k not in self._sent_kfs]
+        for kid in new:
+            k = vo.kfs[kid]
+            pred = max((i for i in ids if i < kid), default=-1)
+            par = self._parent(k)
+            self.comm.add_keyframe(NewKeyframe(
+                id=kid, stamp_ns=k.stamp_ns, T_l_kf=k.T_w_c.copy(), pred_id=pred,
+                T_pred_kf=self._rel(k, pred), parent_id=par, T_par_kf=self._rel(k, par),
+                keypoints=k.f.kp, octaves=k.f.octave, descriptors=k.f.desc,
+                mp_ids=k.mp.copy(), calib=self.source.camera.to_array(),
+            ))  # fmt: skip
+            self._sent_kfs.add(kid)
+        if r.new_points:
+            pts = [vo.mps[i] for i in r.new_points if i in vo.mps]
+            refs = [min(p.obs) for p in pts]
+            T_inv = {k: se3_inv(vo.kfs[k].T_w_c) for k in set(refs)}
+            self.comm.add_map_points(MapPoints(
+                np.array([p.id for p in pts], np.int64), np.array(refs, np.int64),
+                np.array([T_inv[k][:3, :3] @ p.pos + T_inv[k][:3, 3] for p, k in
+                          zip(pts, refs, strict=True)]).reshape(-1, 3),
+                np.array([p.desc for p in pts], np.uint8).reshape(-1, 32),
+            ))  # fmt: skip
+        # Local BA moved the window: send its keyframes' new relative poses and the
+        # older keyframes that gained observations of the new points.
+        for kid in ids[-self.vo.p.window :]:
+            if kid in new:
+                continue
+            k = vo.kfs[kid]
+            pred = max((i for i in ids if i < kid), default=-1)
+            par = self._parent(k)
+            self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
+                                                     self._rel(k, par), k.mp.copy()))  # fmt: skip
+        self._trim(kf.id)
+
+    def _trim(self, kf_ref: int) -> None:
+        unacked = self.comm.unacked_kf_ids
+        infos = [KfInfo(k, True, k not in unacked) for k in self.vo.kfs]
+        gone = trim(infos, kf_ref, self.n_local, self.n_buffer)
+        for k in gone:
+            remove_keyframe(self.vo, k)
+            self.stats.kf_trimmed += 1
+            if k in unacked:
+                self.comm.forget_keyframe(k)
+        lost = set(gone) & unacked
+        if lost:
+            self._reanchor_points(lost)
+
+    def _reanchor_points(self, lost_kfs: set[int]) -> None:
+        """Unsent points anchored to a keyframe the server will never get move to a
+        keyframe that still exists and sees them; points nobody sees any more go."""
+        for i, (ref, _, desc) in list(self.comm.mps.items()):
+            if ref not in lost_kfs:
+                continue
+            mp = self.vo.mps.get(i)
+            alive = [k for k in (mp.obs if mp else ()) if k in self.vo.kfs]
+            if not alive:
+                self.comm.forget_map_point(i)
+                continue
+            k = min(alive)
+            T = se3_inv(self.vo.kfs[k].T_w_c)
+            self.comm.mps[i] = (k, T[:3, :3] @ mp.pos + T[:3, 3], desc)
+
+    def write_outputs(self, out: Path) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        if self.poses:
+            st = np.array([s for s, _ in self.poses], np.int64)
+            T = np.stack([T for _, T in self.poses])
+            (out / f"{self.agent}_online.tum").write_text(format_tum(st, T))
+        gt = self.source.ground_truth
+        if gt is not None:
+            (out / f"{self.agent}_gt.tum").write_text(format_tum(gt.stamps_ns, gt.poses))
+        import json
+
+        comm = {"bytes": self.comm.stats.bytes, "messages": self.comm.stats.messages}
+        doc = {**self.stats.summary(), "comm": comm}
+        (out / f"{self.agent}_stats.json").write_text(json.dumps(doc, indent=2))
+
+
+def online_trajectory(agent: Agent) -> Trajectory:
+    st = np.array([s for s, _ in agent.poses], np.int64)
+    return Trajectory(st, np.stack([T for _, T in agent.poses]))

@@ -1,0 +1,89 @@
+"""The real agent (VO on rendered images) alone and with a server that appears late."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from services.agent.runner import Agent, online_trajectory
+from services.agent.sources import open_source
+from services.mapper.service import MapperService
+from shared.redis_server import free_port
+from shared.settings import Settings, ZenohSettings
+from shared.store import Store, connect
+from shared.trajectory import ate
+from shared.transport import zenoh_config
+
+SRC = "synthetic:MH01?frames=1200:1450"
+
+
+def test_agent_without_server_tracks_and_bounds_its_map():
+    src = open_source(SRC)
+    agent = Agent(Settings(), "solo", src, use_server=False, n_local=10, n_buffer=5)
+    stats = agent.run()
+    agent.close()
+    traj = online_trajectory(agent)
+    assert stats.longest_lost_s <= 1.0
+    assert len(traj) >= 0.9 * len(src)
+    r = ate(traj, src.ground_truth)
+    assert r.percent_of_path < 0.5, r
+    # Bounded local map: N + B keyframes at most, the rest trimmed.
+    assert len(agent.vo.kfs) <= 15 and stats.kf_trimmed > 0
+
+
+def test_late_server_receives_everything_the_buffer_held(redis_url):
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    s = Settings(redis_url=redis_url, zenoh=ZenohSettings(mode="client", connect=[ep]))
+    s = s.model_copy(update={"mapper": s.mapper.model_copy(update={"redundancy": False})})
+    src = open_source(SRC)
+    agent = Agent(s, "late", src, n_local=5, n_buffer=5)
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("stats", agent.run()))
+    t.start()
+    router = mapper = None
+    try:
+        deadline = time.monotonic() + 120
+        while agent.stats.keyframes < 14 and t.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert agent.stats.keyframes >= 14 and agent.bus is None  # no server so far
+        # Trimming already dropped keyframes the server will never see.
+        lost_before = agent.comm.stats.kf_dropped_unacked
+        assert lost_before > 0
+        router = zenoh.open(zenoh_config(ZenohSettings(mode="router", connect=[], listen=[ep])))
+        mapper = MapperService(s)
+        mapper.start()
+        t.join(300)
+    finally:
+        agent.close()
+        if mapper:
+            mapper.stop()
+        if router:
+            router.close()
+    stats = out["stats"]
+    created = set(range(agent.vo.next_kf))
+    forgotten = agent.comm.forgotten  # dropped by the buffer rule before any ack
+    stored = set(Store(connect(redis_url)).keyframe_ids("late"))
+    assert len(forgotten) == stats.kf_lost_unacked > 0
+    # Everything the buffer still held reached the server; nothing else was lost.
+    assert created - forgotten <= stored
+    assert stored <= created
+    assert stored == set(agent.comm.acked_kfs)
+    assert not agent.comm.pending
+    assert len(stored) >= 8
+    assert np.isfinite(Store(connect(redis_url)).trajectory("late")[2]).all()
+
+
+@pytest.mark.parametrize("spec", ["synthetic:MH09"])
+def test_agent_cli_reports_bad_source(spec, tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "services.cli", "agent", "--id", "x", "--source",
+                        spec, "--no-server", "--out", str(tmp_path)],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 2 and "MH09" in r.stderr
