@@ -41,19 +41,16 @@ def run_latency(n_agents: int, seconds: float) -> list[dict]:
     out = Path(tempfile.mkdtemp(prefix="hivemap-bench-"))
     procs = []
     try:
-        for i in range(n_agents):
-            seq = SEQUENCES[i % 5]
-            agent = f"a{n_agents}-{i}"
-            start = 200 * (i // 5)
-            argv = _hivemap_exe() + [
-                "sim-agent", "--id", agent, "--traj", seq, "--seed", str(i),
-                "--frames", f"{start}:{start + int(seconds * 20)}", "--out", str(out),
-            ]  # fmt: skip
-            env = {**os.environ, "HIVEMAP_ZENOH__CONNECT": json.dumps([stack.zenoh_endpoint]),
-                   "HIVEMAP_LOG_LEVEL": "WARNING"}  # fmt: skip
-            procs.append((agent, seq, subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)))
-        for _, _, p in procs:
-            p.wait(seconds * 3 + 120)
+        # All agents in one process (the load-test mode), as a fleet simulator runs.
+        env = {**os.environ, "HIVEMAP_ZENOH__CONNECT": json.dumps([stack.zenoh_endpoint]),
+               "HIVEMAP_LOG_LEVEL": "WARNING"}  # fmt: skip
+        many = ["--id", f"a{n_agents}", "--count", str(n_agents), "--traj", ",".join(SEQUENCES)]
+        argv = _hivemap_exe() + ["sim-agent"] + (
+            many if n_agents > 1 else ["--id", "a1-0", "--traj", "MH01"]
+        ) + ["--frames", f"0:{int(seconds * 20)}", "--out", str(out)]  # fmt: skip
+        p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
+        procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]
+        procs[0][2].wait(seconds * 3 + 120)
         metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
     finally:
         for _, _, p in procs:

@@ -72,6 +72,7 @@ class Agent:
         self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
         self.stats = AgentStats()
         self.poses: list[tuple[int, np.ndarray]] = []
+        self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self.bus = None
         self._session = None
         self._ack_q: queue.Queue = queue.Queue()
@@ -125,6 +126,7 @@ class Agent:
             else:
                 lost_since = None
             if r.keyframe is not None:
+                self.kf_poses.append((r.keyframe.stamp_ns, r.keyframe.T_w_c.copy()))
                 self.stats.keyframes += 1
                 self.stats.map_ms.append(r.map_s * 1e3)
                 self._on_keyframe(r)
@@ -229,14 +231,17 @@ class Agent:
             ))  # fmt: skip
         # Local BA moved the window: send its keyframes' new relative poses and the
         # older keyframes that gained observations of the new points.
+        gained = {k for i in r.new_points if i in vo.mps for k in vo.mps[i].obs}
         for kid in ids[-self.vo.p.window :]:
             if kid in new:
                 continue
             k = vo.kfs[kid]
             pred = max((i for i in ids if i < kid), default=-1)
             par = self._parent(k)
+            # Associations (8 bytes a keypoint) only where triangulation added some.
+            mp = k.mp.copy() if kid in gained else None
             self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
-                                                     self._rel(k, par), k.mp.copy()))  # fmt: skip
+                                                     self._rel(k, par), mp))  # fmt: skip
         self._trim(kf.id)
 
     def _trim(self, kf_ref: int) -> None:
@@ -278,7 +283,17 @@ class Agent:
             (out / f"{self.agent}_gt.tum").write_text(format_tum(gt.stamps_ns, gt.poses))
         import json
 
-        comm = {"bytes": self.comm.stats.bytes, "messages": self.comm.stats.messages}
+        if self.kf_poses:
+            st = np.array([s for s, _ in self.kf_poses], np.int64)
+            T = np.stack([T for _, T in self.kf_poses])
+            (out / f"{self.agent}_keyframes.tum").write_text(format_tum(st, T))
+        lat = np.array(self.comm.stats.ack_latencies) if self.comm.stats.ack_latencies else None
+        comm = {
+            "bytes": self.comm.stats.bytes, "messages": self.comm.stats.messages,
+            "kf_resent": self.comm.stats.kf_resent,
+            "ack_latency_median_ms": None if lat is None else float(np.median(lat) * 1e3),
+            "ack_latency_p95_ms": None if lat is None else float(np.percentile(lat, 95) * 1e3),
+        }  # fmt: skip
         doc = {**self.stats.summary(), "comm": comm}
         (out / f"{self.agent}_stats.json").write_text(json.dumps(doc, indent=2))
 

@@ -160,11 +160,12 @@ class AgentHandler:
         for upd in batch.kf_updates:
             g = self.kf_gid(upd.id)
             if g in self.smap.kfs:
-                if not self.params.refine_poses:
-                    T = self._chain(upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf)
-                    if T is not None:
-                        self.smap.kfs[g].T_m_kf = T
-                        res.changed_kfs.add(g)
+                # The agent's local BA refined this keyframe: follow it through the
+                # relative pose, so server corrections of the predecessor carry over.
+                T = self._chain(upd.pred_id, upd.T_pred_kf, upd.parent_id, upd.T_par_kf)
+                if T is not None:
+                    self.smap.kfs[g].T_m_kf = T
+                    res.changed_kfs.add(g)
                 if upd.mp_ids is not None:
                     self._associate(self.smap.kfs[g], upd.mp_ids, res)
             elif upd.id in self.pending_kfs:
@@ -173,8 +174,7 @@ class AgentHandler:
                 kf.parent_id, kf.T_par_kf = upd.parent_id, upd.T_par_kf
                 if upd.mp_ids is not None:
                     kf.mp_ids = upd.mp_ids
-        if not self.params.refine_poses:
-            self._update_mps(batch.mp_updates, res)
+        self._update_mps(batch.mp_updates, res)
         if self.has_kf(batch.kf_ref):
             self.kf_ref = batch.kf_ref
         res.pending_kfs = len(self.pending_kfs)

@@ -1,0 +1,115 @@
+"""Agent benchmark (on-board VO issue, items 1-3; server-mapping issue, items 1-2).
+
+For each rendered sequence: the `hivemap up` stack (router, redis, mapper) and one
+real agent (`hivemap agent --source synthetic:MHxx`) that runs its VO on every
+frame and streams to the mapper. Reported: ATE of the online per-frame poses after
+Sim(3) alignment (ours and evo's), longest time lost, tracking time per frame,
+mapping time per keyframe, agent -> server bytes per second of flight, keyframe
+latency (agent publish -> ack, and mapper received -> acked), and the server-map
+keyframe trajectory ATE against the agent's own keyframe poses.
+
+    .venv/bin/python bench/bench_vo.py [--seqs MH01,MH02,MH03] [--frames A:B]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_demo import scrape  # noqa: E402
+from common import table, write_report  # noqa: E402
+
+from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from shared.redis_server import free_port  # noqa: E402
+from shared.settings import Settings  # noqa: E402
+from shared.store import Store, connect  # noqa: E402
+from shared.trajectory import Trajectory, ate, read_tum  # noqa: E402
+
+
+def evo_ate(est: Path, ref: Path) -> float | None:
+    try:
+        from evo.core import metrics, sync
+        from evo.tools import file_interface
+    except ImportError:
+        return None
+    r, e = file_interface.read_tum_trajectory_file(str(ref)), \
+        file_interface.read_tum_trajectory_file(str(est))  # fmt: skip
+    r, e = sync.associate_trajectories(r, e)
+    e.align(r, correct_scale=True)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((r, e))
+    return float(ape.get_statistic(metrics.StatisticsType.rmse))
+
+
+def run(seq: str, frames: str) -> dict:
+    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port())
+    stack = Stack(settings)
+    stack.start(with_api=False)
+    out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-{seq}-"))
+    agent = f"vo-{seq}"
+    try:
+        src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+        argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src,
+                                 "--server", stack.zenoh_endpoint, "--out", str(out)]  # fmt: skip
+        env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
+        subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
+        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        store = Store(connect(stack.settings.redis_url))
+        ids, stamps, poses = store.trajectory(agent)
+    finally:
+        stack.stop()
+    st = json.loads((out / f"{agent}_stats.json").read_text())
+    gt = read_tum(out / f"{agent}_gt.tum")
+    online = read_tum(out / f"{agent}_online.tum")
+    kfs = read_tum(out / f"{agent}_keyframes.tum")
+    a_online = ate(online, gt)
+    a_kf = ate(kfs, gt)
+    a_server = ate(Trajectory(stamps, poses), gt)
+    flight_s = (gt.stamps_ns[-1] - gt.stamps_ns[0]) * 1e-9
+    cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
+    tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+    return {
+        "seq": seq, "frames": st["frames"], "path_m": a_online.path_length,
+        "ate_online_m": a_online.rmse, "ate_online_pct": a_online.percent_of_path,
+        "ate_online_evo_m": evo_ate(out / f"{agent}_online.tum", out / f"{agent}_gt.tum"),
+        "longest_lost_s": st["longest_lost_s"],
+        "track_ms_median": st["track_ms_median"], "track_ms_p95": st["track_ms_p95"],
+        "map_ms_per_kf": st["map_ms_per_kf_median"], "keyframes": st["keyframes"],
+        "bytes_per_s": st["comm"]["bytes"] / flight_s,
+        "ack_latency_median_ms": st["comm"]["ack_latency_median_ms"],
+        "ack_latency_p95_ms": st["comm"]["ack_latency_p95_ms"],
+        "mapper_latency_mean_ms": 1e3 * tot / cnt if cnt else None,
+        "ate_agent_kf_m": a_kf.rmse, "ate_server_kf_m": a_server.rmse,
+        "server_kfs": int(len(ids)),
+    }  # fmt: skip
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seqs", default="MH01,MH02,MH03")
+    ap.add_argument("--frames", default="")
+    args = ap.parse_args()
+    rows = []
+    for seq in args.seqs.split(","):
+        rows.append(run(seq, args.frames))
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    path = write_report("vo" + ("_partial" if args.frames else ""), {"rows": rows})
+    print(table(rows, ["seq", "frames", "path_m", "ate_online_m", "ate_online_pct",
+                       "ate_online_evo_m", "longest_lost_s", "track_ms_median", "track_ms_p95",
+                       "map_ms_per_kf", "bytes_per_s"]))  # fmt: skip
+    print(table(rows, ["seq", "keyframes", "server_kfs", "ack_latency_median_ms",
+                       "ack_latency_p95_ms", "mapper_latency_mean_ms", "ate_agent_kf_m",
+                       "ate_server_kf_m"]))  # fmt: skip
+    print(f"written {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
