@@ -75,6 +75,8 @@ def test_late_server_receives_everything_the_buffer_held(redis_url):
     assert stored == set(agent.comm.acked_kfs)
     assert not agent.comm.pending
     assert len(stored) >= 8
+    # Feedback from the server (k covisible keyframes' points) reached the local map.
+    assert stats.foreign_points > 0
     assert np.isfinite(Store(connect(redis_url)).trajectory("late")[2]).all()
 
 

@@ -69,6 +69,7 @@ def _feed(handler: AgentHandler, sim: SimAgent):
         comm.add_map_points(kf.new_mps)
         est[kf.kf.id] = (kf.kf.stamp_ns, kf.kf.T_l_kf)
         res = handler.ingest(comm.next_message(t, 0, kf.kf.id), t)
+        handler.fuse_new()
         comm.on_ack(Ack(sim_id, "m", np.array(res.ack_kf_ids, np.int64),
                         np.array(res.ack_mp_ids, np.int64), 0, 0), t)  # fmt: skip
         t += 1.0

@@ -19,7 +19,15 @@ import numpy as np
 
 from shared import keys
 from shared.geometry import se3_inv
-from shared.messages import Ack, DecodeError, KeyframeUpdate, MapPoints, NewKeyframe, PoseUpdate
+from shared.messages import (
+    Ack,
+    DecodeError,
+    KeyframeUpdate,
+    MapChunk,
+    MapPoints,
+    NewKeyframe,
+    PoseUpdate,
+)
 from shared.metrics import AGENT_ACK_LATENCY, REJECTED
 from shared.settings import Settings
 from shared.trajectory import Trajectory, format_tum
@@ -42,6 +50,7 @@ class AgentStats:
     map_ms: list[float] = field(default_factory=list)
     kf_trimmed: int = 0
     kf_lost_unacked: int = 0
+    foreign_points: int = 0
 
     def summary(self) -> dict:
         t = np.array(self.track_ms) if self.track_ms else np.zeros(1)
@@ -53,6 +62,7 @@ class AgentStats:
             "map_ms_per_kf_median": float(np.median(m)),
             "map_ms_per_kf_p95": float(np.percentile(m, 95)),
             "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
+            "foreign_points": self.foreign_points,
         }  # fmt: skip
 
 
@@ -95,6 +105,7 @@ class Agent:
         self._session = session
         bus = Bus(session, "agent", self.settings.inject)
         bus.subscribe(keys.agent_ack(self.agent), self._ack_q)
+        bus.subscribe(keys.agent_map(self.agent), self._ack_q, maxsize=4)
         self.bus = bus
         log.info("connected to the server", extra={"agent": self.agent})
 
@@ -169,6 +180,9 @@ class Agent:
             self.comm.record_sent(len(data))
 
     def _on_ack(self, payload: bytes, key: str) -> None:
+        if key.endswith("/down/map"):
+            self._on_chunk(payload, key)
+            return
         try:
             ack = Ack.decode(payload)
         except DecodeError as e:
@@ -177,6 +191,26 @@ class Agent:
             return
         for lat in self.comm.on_ack(ack, time.monotonic()):
             AGENT_ACK_LATENCY.labels(self.agent).observe(lat)
+
+    def _on_chunk(self, payload: bytes, key: str) -> None:
+        """Server map data near KF_ref augments the local map."""
+        try:
+            c = MapChunk.decode(payload)
+        except DecodeError as e:
+            REJECTED.labels("agent", key, "invalid").inc()
+            log.warning("bad map chunk: %s", e)
+            return
+        ref = self.vo.kfs.get(c.kf_ref)
+        if ref is None or len(c.mp_ids) == 0:
+            return
+        own = {i for i in self.vo.mps if i not in self.vo.foreign}
+        sel = [j for j, (a, i) in enumerate(zip(c.mp_agents, c.mp_ids.tolist(), strict=True))
+               if not (a == self.agent and i in own)]  # fmt: skip
+        if not sel:
+            return
+        pos = c.p_ref[sel] @ ref.T_w_c[:3, :3].T + ref.T_w_c[:3, 3]
+        keys_ = [(c.mp_agents[j], int(c.mp_ids[j])) for j in sel]
+        self.stats.foreign_points += self.vo.add_foreign_points(keys_, pos, c.mp_descriptors[sel])
 
     def _publish_pose(self, r: FrameResult) -> None:
         if self.bus is None or r.T_w_c is None or not self.vo.kfs:
@@ -187,6 +221,13 @@ class Agent:
         self.bus.put(keys.agent_pose(self.agent), msg.encode(), reliable=False)
 
     # --- local map -> messages ------------------------------------------------------------
+    def _own_ids(self, mp: np.ndarray) -> np.ndarray:
+        """Associations to the server's points stay on board (the server made them)."""
+        out = mp.copy()
+        if self.vo.foreign:
+            out[np.isin(out, np.fromiter(self.vo.foreign, np.int64))] = -1
+        return out
+
     def _parent(self, kf: KeyFrame) -> int:
         counts: dict[int, int] = {}
         for i in kf.mp[kf.mp >= 0].tolist():
@@ -216,7 +257,7 @@ class Agent:
                 id=kid, stamp_ns=k.stamp_ns, T_l_kf=k.T_w_c.copy(), pred_id=pred,
                 T_pred_kf=self._rel(k, pred), parent_id=par, T_par_kf=self._rel(k, par),
                 keypoints=k.f.kp, octaves=k.f.octave, descriptors=k.f.desc,
-                mp_ids=k.mp.copy(), calib=self.source.camera.to_array(),
+                mp_ids=self._own_ids(k.mp), calib=self.source.camera.to_array(),
             ))  # fmt: skip
             self._sent_kfs.add(kid)
         if r.new_points:
@@ -239,7 +280,7 @@ class Agent:
             pred = max((i for i in ids if i < kid), default=-1)
             par = self._parent(k)
             # Associations (8 bytes a keypoint) only where triangulation added some.
-            mp = k.mp.copy() if kid in gained else None
+            mp = self._own_ids(k.mp) if kid in gained else None
             self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
                                                      self._rel(k, par), mp))  # fmt: skip
         self._trim(kf.id)

@@ -10,6 +10,7 @@ when tracking is lost. Pure algorithm: images in, poses and keyframes out.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -84,6 +85,8 @@ class VisualOdometry:
         self.frames_since_kf = 0
         self.kf_inliers = 0
         self.lost_frames = 0
+        self.foreign: OrderedDict[int, tuple[str, int]] = OrderedDict()  # local id -> key
+        self.foreign_by_key: dict[tuple[str, int], int] = {}
 
     # --- public -----------------------------------------------------------------------------
     def track(self, img: np.ndarray, stamp_ns: int) -> FrameResult:
@@ -141,11 +144,33 @@ class VisualOdometry:
     # --- tracking ---------------------------------------------------------------------------
     def _local_points(self) -> np.ndarray:
         ids = sorted(self.kfs)[-self.p.local_kfs :]
-        pts = set()
+        pts = set(self.foreign)
         for k in ids:
             m = self.kfs[k].mp
             pts.update(m[m >= 0].tolist())
         return np.array(sorted(p for p in pts if p in self.mps), np.int64)
+
+    def add_foreign_points(self, keys: list[tuple[str, int]], pos: np.ndarray,
+                           desc: np.ndarray, max_points: int = 3000) -> int:  # fmt: skip
+        """Map points the server sent (CCM-SLAM §4.5): searched while tracking like
+        the agent's own, never sent back, the oldest forgotten past ``max_points``."""
+        n = 0
+        for key, p, d in zip(keys, pos, desc, strict=True):
+            local = self.foreign_by_key.get(key)
+            if local is not None and local in self.mps:
+                self.mps[local].pos = np.asarray(p, float)  # the server's latest estimate
+                self.foreign.move_to_end(local)
+                continue
+            mp = self._new_mp(p, d, max(self.kfs, default=0))
+            self.foreign[mp.id] = key
+            self.foreign_by_key[key] = mp.id
+            n += 1
+        while len(self.foreign) > max_points:
+            old, key = self.foreign.popitem(last=False)
+            self.foreign_by_key.pop(key, None)
+            if old in self.mps:
+                self._remove_mp(old)
+        return n
 
     def _project(self, T_w_c: np.ndarray, pids: np.ndarray):
         P = np.array([self.mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
@@ -297,6 +322,8 @@ class VisualOdometry:
 
     def _cull_points(self, kf: KeyFrame) -> None:
         for i in list(self.mps):
+            if i in self.foreign:
+                continue  # the server's points are judged by the server
             mp = self.mps[i]
             age = kf.id - mp.first_kf
             if age >= 2 and (mp.found / max(mp.visible, 1) < 0.25 or len(mp.obs) < 2):
