@@ -1,0 +1,128 @@
+"""Local bundle adjustment, projection-guided matching and spread ORB on seeded scenes."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from services.agent.vo.features import Extractor, Features, match_by_projection
+from services.agent.vo.local_ba import local_ba
+from shared.camera import PinholeRadTan
+from shared.geometry import exp_so3, rotation_angle, se3
+
+F = 458.0
+
+
+def _observe(T_w_c: np.ndarray, P: np.ndarray) -> np.ndarray:
+    Xc = (P - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    return Xc[:, :2] / Xc[:, 2:3]
+
+
+def test_local_ba_converges_to_ground_truth_from_perturbed_start():
+    rng = np.random.default_rng(5)
+    n_kf, n_pts = 6, 250
+    P = rng.uniform([-4, -3, 4], [4, 3, 10], (n_pts, 3))
+    truth = {
+        k: se3(exp_so3([0.0, 0.02 * k, 0.01 * k]), [0.2 * k, 0.02 * k, 0.0]) for k in range(n_kf)
+    }
+    obs = []
+    for k, T in truth.items():
+        xy = _observe(T, P) + rng.normal(0, 0.5 / F, (n_pts, 2))
+        obs += [(k, j, xy[j]) for j in range(n_pts)]
+    # Gross outliers on a few observations of window keyframes.
+    bad = {(3, 7), (4, 11), (5, 19)}
+    obs = [(k, j, xy + (0.05 if (k, j) in bad else 0.0)) for k, j, xy in obs]
+    # Keyframes 0 and 1 are fixed (they fix the gauge and scale), the rest perturbed.
+    fixed = {0, 1}
+    start = {
+        k: T if k in fixed else T @ se3(exp_so3(rng.normal(0, 0.01, 3)), rng.normal(0, 0.03, 3))
+        for k, T in truth.items()
+    }
+    pts0 = {j: P[j] + rng.normal(0, 0.1, 3) for j in range(n_pts)}
+    r = local_ba(start, fixed, pts0, obs, F, max_iters=10)
+    assert set(r.poses) == set(truth) - fixed
+    assert r.error_after < 0.05 * r.error_before
+    # Converged: the same optimum as when started at the truth (the noise floor) ...
+    ref = local_ba(truth, fixed, dict(enumerate(P)), obs, F, max_iters=10)
+    for k, T in r.poses.items():
+        assert np.linalg.norm(T[:3, 3] - ref.poses[k][:3, 3]) < 2e-4, k
+        assert np.degrees(rotation_angle(T[:3, :3].T @ ref.poses[k][:3, :3])) < 2e-3, k
+        # ... and that optimum is near the truth (0.5 px noise, 4-10 m depth).
+        assert np.linalg.norm(T[:3, 3] - truth[k][:3, 3]) < 0.015, k
+        assert np.degrees(rotation_angle(T[:3, :3].T @ truth[k][:3, :3])) < 0.1, k
+    got = np.array([r.points[j] for j in range(n_pts)])
+    want = np.array([ref.points[j] for j in range(n_pts)])
+    assert np.percentile(np.linalg.norm(got - want, axis=1), 95) < 2e-3
+    # Depth noise grows as z^2: compare relative to distance (about 0.5 % here).
+    rel = np.linalg.norm(got - P, axis=1) / np.linalg.norm(P, axis=1)
+    assert np.median(rel) < 0.01
+    # The corrupted observations (~23 px) come back as outliers, and few others do.
+    assert bad <= set(r.outliers) and len(r.outliers) <= len(bad) + 3
+
+
+def _features(uv: np.ndarray, desc: np.ndarray) -> Features:
+    n = len(uv)
+    return Features(uv.astype(np.float32), np.zeros(n, np.uint8), desc, np.zeros((n, 2)))
+
+
+def test_match_by_projection_finds_true_keypoint_within_radius():
+    rng = np.random.default_rng(9)
+    n_kp = 1000
+    kp = rng.uniform([0, 0], [752, 480], (n_kp, 2))
+    desc = rng.integers(0, 256, (n_kp, 32), dtype=np.uint8)
+    feats = _features(kp, desc)
+    truth = rng.choice(n_kp, 300, replace=False)
+    # Map points predicted 0-4 px from their keypoint, descriptors a few bits off.
+    uv = kp[truth] + rng.uniform(-3, 3, (300, 2))
+    mdesc = desc[truth].copy()
+    flip = rng.integers(0, 32, (300, 3))
+    np.bitwise_xor.at(mdesc, (np.arange(300)[:, None], flip), np.uint8(1))
+    pi, ki = match_by_projection(feats, uv, mdesc, radius=8.0)
+    assert len(pi) >= 290
+    assert np.array_equal(ki, truth[pi])
+    assert len(np.unique(ki)) == len(ki)
+    # Predictions far from their keypoint (beyond the radius) must not match it.
+    pi2, ki2 = match_by_projection(feats, kp[truth] + 30.0, mdesc, radius=8.0)
+    assert not np.any(ki2 == truth[pi2])
+
+
+def _texture(rng: np.random.Generator, contrast: float, h: int = 480, w: int = 752) -> np.ndarray:
+    # Full texture in the left quarter, ``contrast`` of it elsewhere: plain ORB clusters left.
+    img = cv2.GaussianBlur(rng.integers(0, 256, (h, w), dtype=np.uint8), (5, 5), 1.5)
+    img = img.astype(np.float32)
+    img[:, w // 4 :] = 128 + contrast * (img[:, w // 4 :] - 128)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_extractor_spreads_keypoints_and_undistorts():
+    rng = np.random.default_rng(2)
+    cam = PinholeRadTan.euroc_cam0()
+    img = _texture(rng, 0.8, cam.height, cam.width)
+    f = Extractor(cam, n_features=500)(img)
+    assert len(f) == 500
+    assert f.kp.dtype == np.float32 and f.desc.shape == (len(f), 32) and f.octave.dtype == np.uint8
+    # Keypoints reach every column band of the 8x6 grid, not only the textured quarter.
+    cols = np.minimum(f.kp[:, 0] * 8 // cam.width, 7).astype(int)
+    counts = np.bincount(cols, minlength=8)
+    assert (counts > 0).all(), counts
+    plain = cv2.ORB_create(500, 1.2, 8, 19, 0, 2, cv2.ORB_HARRIS_SCORE, 31, 12).detect(img, None)
+    plain_left = np.mean([p.pt[0] < cam.width / 4 for p in plain])
+    assert counts[:2].sum() / len(f) < 0.7 * plain_left
+    # Normalized coordinates re-project onto the distorted keypoints.
+    uv, valid = cam.project(np.column_stack([f.xy, np.ones(len(f))]))
+    assert valid.all()
+    np.testing.assert_allclose(uv, f.kp, atol=0.05)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="no per-cell FAST threshold fallback (ORB-SLAM's minThFAST): the candidate pool "
+    "is ORB's global top 2n, so weakly textured cells get no keypoints at all",
+)
+def test_extractor_reaches_weakly_textured_cells():
+    rng = np.random.default_rng(2)
+    cam = PinholeRadTan.euroc_cam0()
+    f = Extractor(cam, n_features=500)(_texture(rng, 0.5, cam.height, cam.width))
+    cols = np.minimum(f.kp[:, 0] * 8 // cam.width, 7).astype(int)
+    assert (np.bincount(cols, minlength=8) >= 10).all()
