@@ -6,8 +6,8 @@ is its strongest covisible older keyframe: poses are sent relative to it
 (CCM-SLAM §4.5) and it is what survives as the anchor when edges are weak.
 
 Built in one sparse product from each keyframe's keypoint-to-map-point array
-(-1 for none), so rebuilding it after every keyframe costs well under a
-millisecond for a 50-keyframe local map.
+(-1 for none), so rebuilding it after every keyframe is cheap: ~3.5 ms for 50
+keyframes of 1000 keypoints (measured), against ~100 ms of mapping per keyframe.
 """
 
 from __future__ import annotations
