@@ -12,8 +12,13 @@ from shared.settings import Settings
 
 
 def cmd_agent(args: argparse.Namespace, settings: Settings) -> int:
+    import cv2
+
     from .runner import Agent
     from .sources import SourceError, open_source
+
+    # An agent is a small on-board computer: tracking is measured on one core.
+    cv2.setNumThreads(args.threads)
 
     try:
         src = open_source(args.source)
@@ -51,4 +56,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-server", action="store_true", help="fly alone")
     p.add_argument("--realtime", action="store_true", help="pace frames by their timestamps")
     p.add_argument("--out", default="agent_out", help="online poses (TUM) and stats go here")
+    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (1: one core)")
     p.set_defaults(func=cmd_agent)
