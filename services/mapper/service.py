@@ -91,6 +91,11 @@ class MapActor:
             self._feedback()
 
     def _idle(self) -> None:
+        try:
+            with self.lock:
+                self.svc.fuse(self.smap)
+        except Exception:
+            log.exception("point fusion failed")
         if self.svc.settings.mapper.redundancy:
             try:
                 with self.lock:
@@ -195,7 +200,9 @@ class MapperService:
             return None
         h = self.handler(batch.agent)
         with self.actor(h.map_id).lock:
-            return self.apply(h, batch, recv_ns)
+            ack = self.apply(h, batch, recv_ns)
+            self.fuse(h.smap)
+            return ack
 
     def apply(self, h: AgentHandler, batch: KeyframeBatch, recv_ns: int) -> Ack:
         t0 = time.perf_counter()
@@ -213,18 +220,26 @@ class MapperService:
         now_ns = time.time_ns()
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
-        if h.to_fuse:
-            fres = h.fuse_new()
-            if fres.changed:
-                pipe = self.store.pipeline()
-                persist.write_result(pipe, h, fres, self.names)
-                pipe.execute()
+
         STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
         STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
         MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))
         MAP_POINTS.labels(h.map_id).set(len(h.smap.mps))
         PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
         return ack
+
+    def fuse(self, smap: ServerMap) -> int:
+        """Point fusion for keyframes registered since the last call (idle work, so it
+        never sits between a batch and its ack, nor between two agents' batches)."""
+        n = 0
+        for h in [h for h in self.handlers.values() if h.smap is smap and h.to_fuse]:
+            fres = h.fuse_new()
+            n += fres.fused
+            if fres.changed:
+                pipe = self.store.pipeline()
+                persist.write_result(pipe, h, fres, self.names)
+                pipe.execute()
+        return n
 
     def cull(self, smap: ServerMap, rng: random.Random) -> int:
         """One round of redundant-keyframe rejection on ``smap``."""
