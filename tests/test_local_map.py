@@ -36,11 +36,6 @@ def test_trim_keeps_old_kf_ref_even_when_acked():
     assert sorted(k.id for k in _apply(kfs, gone)) == [0, 7, 8, 9]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="trim keeps N-1 keyframes when KF_ref is the newest: it takes the N-1 newest "
-    "including KF_ref instead of KF_ref plus the N-1 newest others",
-)
 def test_trim_holds_n_keyframes_when_kf_ref_is_newest():
     kfs = [_own(i, acked=True) for i in range(10)]
     gone = trim(kfs, kf_ref=9, n=4, b=4)

@@ -4,8 +4,7 @@ With 20 % outliers, MAGSAC on normalized coordinates (threshold ~0.002) keeps to
 few inliers: the homography loses to the essential matrix on a plane and the pose
 is degrees off. The same estimators in pixel units (x * f, K = diag(f, f, 1),
 threshold in pixels, H mapped back with K^-1 H K) recover the pose to < 0.1 deg
-(checked with a patched copy of geometry.two_view_init). Strict xfail until
-geometry.py takes that change.
+(geometry.two_view_init now does that).
 """
 
 from __future__ import annotations
@@ -35,7 +34,6 @@ def _views(seed: int, planar: bool, n: int = 400, n_bad: int = 80):
     return xy[0], xy[1], T2, bad
 
 
-@pytest.mark.xfail(strict=True, reason="MAGSAC runs on normalized coordinates (see module doc)")
 @pytest.mark.parametrize("planar", [False, True])
 def test_two_view_init_with_20_percent_outliers(planar):
     for seed in range(3):

@@ -23,7 +23,8 @@ def trim(kfs: list[KfInfo], kf_ref: int, n: int, b: int) -> list[int]:
     if len(kfs) <= n:
         return []
     by_age = sorted(kfs, key=lambda k: k.id)
-    newest = {k.id for k in by_age[-(n - 1) :]} if n > 1 else set()
+    others = [k for k in by_age if k.id != kf_ref]
+    newest = {k.id for k in others[-(n - 1) :]} if n > 1 else set()
     keep = newest | {kf_ref}
     old = [k for k in by_age if k.id not in keep]
     remove = [k.id for k in old if k.acked]

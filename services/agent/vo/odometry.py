@@ -151,7 +151,7 @@ class VisualOdometry:
         return np.array(sorted(p for p in pts if p in self.mps), np.int64)
 
     def add_foreign_points(self, keys: list[tuple[str, int]], pos: np.ndarray,
-                           desc: np.ndarray, max_points: int = 3000) -> int:  # fmt: skip
+                           desc: np.ndarray, max_points: int = 1500) -> int:  # fmt: skip
         """Map points the server sent (CCM-SLAM §4.5): searched while tracking like
         the agent's own, never sent back, the oldest forgotten past ``max_points``."""
         n = 0
