@@ -172,29 +172,29 @@ class VisualOdometry:
                 self._remove_mp(old)
         return n
 
-    def _project(self, T_w_c: np.ndarray, pids: np.ndarray):
-        P = np.array([self.mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
-        Xc = (P - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-        uv, ok = self.cam.project(Xc, min_depth=0.05)
-        return P, uv, ok
+    def _points(self, pids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and descriptors of ``pids``, gathered once per frame."""
+        mps = self.mps
+        P = np.array([mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
+        D = np.array([mps[i].desc for i in pids.tolist()], np.uint8).reshape(-1, 32)
+        return P, D
 
-    def _search(self, f: Features, T: np.ndarray, pids: np.ndarray, radius: float):
-        P, uv, ok = self._project(T, pids)
+    def _search(self, f: Features, T: np.ndarray, P: np.ndarray, D: np.ndarray, radius: float):
+        Xc = (P - T[:3, 3]) @ T[:3, :3]
+        uv, ok = self.cam.project(Xc, min_depth=0.05)
         if not ok.any():
-            return np.zeros(0, int), np.zeros(0, int), P
+            return np.zeros(0, int), np.zeros(0, int), ok
         sel = np.nonzero(ok)[0]
-        desc = np.array([self.mps[i].desc for i in pids[sel].tolist()], np.uint8)
-        pi, kp = match_by_projection(f, uv[sel], desc, radius)
-        for i in pids[sel].tolist():
-            self.mps[i].visible += 1
-        return sel[pi], kp, P
+        pi, kp = match_by_projection(f, uv[sel], D[sel], radius)
+        return sel[pi], kp, ok
 
     def _track(self, f: Features, stamp: int) -> FrameResult:
         pids = self._local_points()
+        P, D = self._points(pids)
         T_pred = self.T_last @ self.velocity
         res = None
         for radius in (self.p.search_radius, 3 * self.p.search_radius):
-            pi, kp, P = self._search(f, T_pred, pids, radius)
+            pi, kp, _ = self._search(f, T_pred, P, D, radius)
             if len(pi) >= self.p.min_inliers:
                 r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T_pred)
                 if r.ok and r.inliers.sum() >= self.p.min_inliers:
@@ -209,11 +209,13 @@ class VisualOdometry:
                 self.T_last = T_pred
                 return FrameResult(stamp, T_pred.copy(), "lost")
         # Second pass: with the refined pose, a tighter search finds more points.
-        pi2, kp2, P2 = self._search(f, res.T_w_c, pids, 4.0)
+        pi2, kp2, seen = self._search(f, res.T_w_c, P, D, 4.0)
         if len(pi2) >= self.p.min_inliers:
-            r2 = solve_pnp(P2[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
+            r2 = solve_pnp(P[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
             if r2.ok and r2.inliers.sum() >= res.inliers.sum() * 0.8:
                 res, pi, kp = r2, pi2, kp2
+        for i in pids[seen].tolist():
+            self.mps[i].visible += 1
         inl = res.inliers
         for i in pids[pi[inl]].tolist():
             self.mps[i].found += 1
