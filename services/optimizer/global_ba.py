@@ -1,0 +1,308 @@
+"""Global bundle adjustment with GTSAM, and the full global optimization (PGO + BA).
+
+Graph: one Pose3 (camera to map) per keyframe, one Point3 per map point with at
+least two observations, one GenericProjectionFactorCal3_S2 per observation on
+undistorted normalized coordinates (unit calibration), noise ``1.2**octave / fx``
+(ORB's pyramid sigma in pixels, expressed in normalized units) under a Huber
+kernel with ``k = sqrt(5.991)`` standard deviations (ORB-SLAM's 2-DoF 95 % chi2).
+
+Gauge (7 DoF for monocular): a tight prior on the fixed keyframe's pose (6 DoF)
+plus a tight ``RangeFactorPose3`` holding its distance to one reference keyframe
+(the one sharing most points with it) -- one scalar for the scale. That is the
+minimal gauge: fixing a second full pose as well would remove 5 more DoF that are
+not gauge and bend the map near those two keyframes towards their pre-BA relative
+pose. When the caller names several fixed keyframes, each gets a full prior and no
+range factor is added (the caller asked for them to stay).
+
+Graph building is where Python costs: factors are inserted per (keyframe, octave)
+group through ``gtsam.utilities.insertProjectionFactors`` (one C++ loop per group)
+and keys are plain integers (cameras ``0..K-1``, points after them) so they pass
+as a float vector. Reprojection errors and outliers are computed with numpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from services.optimizer.pose_graph import PGOParams, apply_to_snapshot, optimize_pose_graph
+from services.optimizer.snapshot import Correction, MapSnapshot
+
+log = logging.getLogger(__name__)
+
+CHI2_2DOF_95 = 5.991
+PYRAMID_SCALE = 1.2
+
+
+@dataclass
+class BAParams:
+    max_iters: int = 20
+    time_budget_s: float = 10.0  # no new iteration starts after this much time
+    rel_tol: float = 1e-5  # stop when the error drops by less than this fraction
+    huber_k: float = float(np.sqrt(CHI2_2DOF_95))
+    chi2_outlier: float = CHI2_2DOF_95
+    min_obs_per_point: int = 2
+    min_obs_per_kf: int = 5  # fewer observations do not pin a 6-DoF pose
+    prior_sigma: float = 1e-6
+    range_sigma_rel: float = 1e-6
+    min_depth: float = 1e-3  # observations of points this close or behind are outliers
+    # "colamd" (GTSAM's default), "metis", or "points_first" (Schur-like:
+    # points eliminated first, the reduced camera system last).
+    ordering: str = "points_first"
+
+
+@dataclass
+class ReprojStats:
+    chi2: np.ndarray  # (O,) squared error in units of the observation's sigma
+    err_px: np.ndarray  # (O,) pixel error (inf for points behind the camera)
+
+
+def reprojection(snap_T: np.ndarray, pos: np.ndarray, snap: MapSnapshot) -> ReprojStats:
+    """Per-observation pixel error and chi2 of poses ``snap_T`` and points ``pos``."""
+    T = snap_T[snap.obs_kf]
+    d = pos[snap.obs_mp] - T[:, :3, 3]
+    X_c = np.einsum("nji,nj->ni", T[:, :3, :3], d)  # R^T (p - t)
+    z = X_c[:, 2]
+    front = z > 1e-9
+    proj = X_c[:, :2] / np.where(front, z, 1.0)[:, None]
+    err = np.linalg.norm(proj - snap.obs_xy, axis=1) * snap.fx
+    err = np.where(front, err, np.inf)
+    sig = PYRAMID_SCALE ** snap.obs_octave.astype(np.float64)
+    return ReprojStats((err / sig) ** 2, err)
+
+
+def _gauge_partner(snap: MapSnapshot, fixed: int, kf_ok: np.ndarray, obs_ok: np.ndarray) -> int:
+    """The keyframe sharing most (used) points with ``fixed`` at a nonzero distance;
+    the nearest other keyframe in index order when none shares any."""
+    ok = obs_ok.copy()
+    pts = np.unique(snap.obs_mp[ok & (snap.obs_kf == fixed)])
+    sel = ok & np.isin(snap.obs_mp, pts) & (snap.obs_kf != fixed)
+    cnt = np.bincount(snap.obs_kf[sel], minlength=snap.n_kf).astype(np.float64)
+    dist = np.linalg.norm(snap.T_m_kf[:, :3, 3] - snap.T_m_kf[fixed, :3, 3], axis=1)
+    scale = max(float(np.median(dist[kf_ok])) if kf_ok.any() else 1.0, 1e-9)
+    cnt[(dist < 1e-6 * scale) | ~kf_ok] = 0
+    if cnt.max() > 0:
+        return int(np.argmax(cnt))
+    cand = np.nonzero(kf_ok & (dist >= 1e-6 * scale))[0]
+    return int(cand[0]) if len(cand) else -1
+
+
+def _select(snap: MapSnapshot, p: BAParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(observation mask, keyframe mask, point mask) of what enters the graph: points
+    with enough observations in front of their cameras, keyframes with enough of
+    those, repeated once so the two rules agree."""
+    rp = reprojection(snap.T_m_kf, snap.mp_pos, snap)
+    obs_ok = np.isfinite(rp.err_px)
+    # Depth check again with the configured margin (err_px is inf only behind).
+    T = snap.T_m_kf[snap.obs_kf]
+    z = np.einsum("ni,ni->n", T[:, :3, 2], snap.mp_pos[snap.obs_mp] - T[:, :3, 3])
+    obs_ok &= z > p.min_depth
+    fixed = snap.kf_index()
+    fixed_idx = [fixed[int(g)] for g in snap.fixed_gids]
+    kf_ok = np.ones(snap.n_kf, bool)
+    mp_ok = np.ones(len(snap.mp_gids), bool)
+    for _ in range(2):
+        cur = obs_ok & kf_ok[snap.obs_kf] & mp_ok[snap.obs_mp]
+        mp_ok = np.bincount(snap.obs_mp[cur], minlength=len(mp_ok)) >= p.min_obs_per_point
+        cur &= mp_ok[snap.obs_mp]
+        kf_ok = np.bincount(snap.obs_kf[cur], minlength=snap.n_kf) >= p.min_obs_per_kf
+        kf_ok[fixed_idx] = True
+    cur = obs_ok & kf_ok[snap.obs_kf] & mp_ok[snap.obs_mp]
+    mp_ok = np.bincount(snap.obs_mp[cur], minlength=len(mp_ok)) >= p.min_obs_per_point
+    cur &= mp_ok[snap.obs_mp]
+    return cur, kf_ok, mp_ok
+
+
+def _ordering(graph: gtsam.NonlinearFactorGraph, cam_keys: list[int], kind: str):
+    if kind == "colamd":
+        return None
+    if kind == "metis":
+        return gtsam.Ordering.MetisNonlinearFactorGraph(graph)
+    if kind == "points_first":
+        return gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, cam_keys)
+    raise ValueError(f"unknown ordering {kind!r}")
+
+
+def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correction:
+    """Global BA over ``snap``; returns refined poses and points (keyframes and points
+    left out of the graph keep their input values), the observations that are still
+    outliers, and stats (iterations, GTSAM error and inlier pixel RMSE before/after)."""
+    p = params or BAParams()
+    t0 = time.perf_counter()
+    K, M = snap.n_kf, len(snap.mp_gids)
+    obs_ok, kf_ok, mp_ok = _select(snap, p)
+    idx = snap.kf_index()
+    fixed = [idx[int(g)] for g in snap.fixed_gids] or ([0] if K else [])
+    cam = np.nonzero(kf_ok)[0]
+    pts = np.nonzero(mp_ok)[0]
+    # Keys: cameras 0..Kb-1, points Kb.. (small integers survive the float vector).
+    cam_key = np.full(K, -1, np.int64)
+    cam_key[cam] = np.arange(len(cam))
+    pt_key = np.full(M, -1, np.int64)
+    pt_key[pts] = len(cam) + np.arange(len(pts))
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for i in cam.tolist():
+        values.insert(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]))
+    for j, P in zip(pts.tolist(), snap.mp_pos[pts], strict=True):
+        values.insert(int(pt_key[j]), P)
+
+    cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(p.huber_k)
+    oct_all = snap.obs_octave.astype(np.int64)
+    models = {
+        int(o): gtsam.noiseModel.Robust.Create(
+            huber, gtsam.noiseModel.Isotropic.Sigma(2, PYRAMID_SCALE**o / snap.fx)
+        )
+        for o in np.unique(oct_all[obs_ok])
+    }
+    sel = np.nonzero(obs_ok)[0]
+    group = snap.obs_kf[sel].astype(np.int64) * 256 + oct_all[sel]
+    order = np.argsort(group, kind="stable")
+    sel, group = sel[order], group[order]
+    bounds = np.flatnonzero(np.diff(group)) + 1
+    starts = np.concatenate([[0], bounds]) if len(sel) else np.zeros(0, np.int64)
+    ends = np.concatenate([bounds, [len(sel)]]) if len(sel) else np.zeros(0, np.int64)
+    J_all = pt_key[snap.obs_mp[sel]].astype(np.float64)
+    Z_all = np.ascontiguousarray(snap.obs_xy[sel].T)
+    insert = gtsam.utilities.insertProjectionFactors
+    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+        o = sel[a]
+        insert(graph, int(cam_key[snap.obs_kf[o]]), J_all[a:b], Z_all[:, a:b],
+               models[int(oct_all[o])], cal)  # fmt: skip
+
+    prior = gtsam.noiseModel.Isotropic.Sigma(6, p.prior_sigma)
+    for i in fixed:
+        graph.add(gtsam.PriorFactorPose3(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]), prior))
+    partner = -1
+    if len(fixed) == 1:
+        partner = _gauge_partner(snap, fixed[0], kf_ok, obs_ok)
+        if partner >= 0:
+            d0 = float(np.linalg.norm(snap.T_m_kf[partner, :3, 3] - snap.T_m_kf[fixed[0], :3, 3]))
+            graph.add(gtsam.RangeFactorPose3(
+                int(cam_key[fixed[0]]), int(cam_key[partner]), d0,
+                gtsam.noiseModel.Isotropic.Sigma(1, p.range_sigma_rel * d0)))  # fmt: skip
+    t_build = time.perf_counter() - t0
+
+    rp0 = reprojection(snap.T_m_kf, snap.mp_pos, snap)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(p.max_iters)
+    lm.setRelativeErrorTol(p.rel_tol)
+    ordering = _ordering(graph, cam_key[cam].tolist(), p.ordering)
+    if ordering is None:
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+    else:
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, ordering, lm)
+    e0 = opt.error()
+    t_opt = time.perf_counter()
+    it = 0
+    e_prev = e0
+    stop = "max_iters"
+    errors = [e0]
+    # One LM iteration at a time, so the time budget holds between iterations.
+    while it < p.max_iters:
+        opt.iterate()
+        it += 1
+        e = opt.error()
+        errors.append(e)
+        if e_prev - e < p.rel_tol * e_prev:
+            stop = "converged"
+            break
+        e_prev = e
+        if time.perf_counter() - t0 > p.time_budget_s:
+            stop = "time_budget"
+            break
+    t_iter = time.perf_counter() - t_opt
+    result = opt.values()
+    e1 = opt.error()
+
+    T_new = snap.T_m_kf.copy()
+    pos_new = snap.mp_pos.copy()
+    if len(cam):
+        P = gtsam.utilities.extractPose3(result)  # rows in key order: R row-major, t
+        T_new[cam, :3, :3] = P[:, :9].reshape(-1, 3, 3)
+        T_new[cam, :3, 3] = P[:, 9:]
+    if len(pts):
+        pos_new[pts] = gtsam.utilities.extractPoint3(result)
+    rp1 = reprojection(T_new, pos_new, snap)
+    out = ~(rp1.chi2 <= p.chi2_outlier)  # catches inf / nan too
+    outliers = np.column_stack(
+        [snap.kf_gids[snap.obs_kf[out]], snap.mp_gids[snap.obs_mp[out]]]
+    ).astype(np.int64)
+    inl = ~out
+
+    def rmse(err: np.ndarray, m: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(err[m] ** 2))) if m.any() else float("nan")
+
+    dt = time.perf_counter() - t0
+    stats = {
+        "ba_seconds": dt,
+        "ba_build_seconds": t_build,
+        "ba_iterate_seconds": t_iter,
+        "ba_iterations": it,
+        "ba_stop": stop,
+        "ba_error_initial": float(e0),
+        "ba_error_final": float(e1),
+        "ba_errors": [float(x) for x in errors],
+        "ba_rmse_px_initial": rmse(rp0.err_px, inl & np.isfinite(rp0.err_px)),
+        "ba_rmse_px_final": rmse(rp1.err_px, inl),
+        "ba_kfs": int(len(cam)),
+        "ba_points": int(len(pts)),
+        "ba_observations": int(obs_ok.sum()),
+        "ba_outliers": int(out.sum()),
+        "ba_gauge": {"fixed": [int(snap.kf_gids[i]) for i in fixed],
+                     "range_to": int(snap.kf_gids[partner]) if partner >= 0 else None},
+    }  # fmt: skip
+    log.info("global BA %s: %d kfs, %d pts, %d obs; error %.4g -> %.4g in %d it (%s), "
+             "rmse %.3f -> %.3f px, %d outliers, %.2f s", snap.map_id, len(cam), len(pts),
+             int(obs_ok.sum()), e0, e1, it, stop, stats["ba_rmse_px_initial"],
+             stats["ba_rmse_px_final"], int(out.sum()), dt)  # fmt: skip
+    return Correction(
+        map_id=snap.map_id,
+        base_version=snap.version,
+        kf_gids=snap.kf_gids.copy(),
+        T_m_kf=T_new,
+        kf_scale=np.ones(K),
+        mp_gids=snap.mp_gids.copy(),
+        mp_pos=pos_new,
+        stats=stats,
+        outliers=outliers,
+    )
+
+
+@dataclass
+class GlobalParams:
+    pgo: PGOParams = field(default_factory=PGOParams)
+    ba: BAParams = field(default_factory=BAParams)
+    run_pgo: bool = True  # skip when there is no loop edge (nothing to distribute)
+    run_ba: bool = True
+
+
+def optimize_map(snap: MapSnapshot, params: GlobalParams | None = None) -> Correction:
+    """CCM-SLAM §4.9: Sim(3) pose-graph optimization on the essential graph, then
+    global BA from its result. The returned correction holds BA's poses and points and
+    PGO's per-keyframe scales (what keyframes that arrive meanwhile need)."""
+    p = params or GlobalParams()
+    stats: dict = {}
+    corr: Correction | None = None
+    if p.run_pgo:
+        corr = optimize_pose_graph(snap, p.pgo)
+        stats.update(corr.stats)
+        snap = apply_to_snapshot(snap, corr)
+    if p.run_ba:
+        ba = bundle_adjust(snap, p.ba)
+        stats.update(ba.stats)
+        if corr is not None:
+            ba.kf_scale = corr.kf_scale
+        corr = ba
+    if corr is None:
+        K = snap.n_kf
+        corr = Correction(snap.map_id, snap.version, snap.kf_gids.copy(), snap.T_m_kf.copy(),
+                          np.ones(K), snap.mp_gids.copy(), snap.mp_pos.copy())  # fmt: skip
+    corr.stats = stats
+    return corr
