@@ -39,7 +39,12 @@ def main() -> int:
     ap.add_argument("--speed", type=float, default=1.0)
     args = ap.parse_args()
     frames = int(args.seconds * 20 * args.speed)
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port())
+    settings = Settings(
+        api_port=free_port(),
+        mapper_metrics_port=free_port(),
+        placerec_metrics_port=free_port(),
+        optimizer_metrics_port=free_port(),
+    )
     stack = Stack(settings)
     stack.start()
     out = Path(tempfile.mkdtemp(prefix="hivemap-bench-"))

@@ -49,7 +49,12 @@ def evo_ate(est: Path, ref: Path) -> float | None:
 
 
 def run(seq: str, frames: str) -> dict:
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port())
+    settings = Settings(
+        api_port=free_port(),
+        mapper_metrics_port=free_port(),
+        placerec_metrics_port=free_port(),
+        optimizer_metrics_port=free_port(),
+    )
     stack = Stack(settings)
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-{seq}-"))

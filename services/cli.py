@@ -15,7 +15,10 @@ import sys
 COMMAND_MODULES = [
     "services.launcher",  # up, demo, router
     "services.mapper.cli",  # mapper
+    "services.placerec.cli",  # placerec
+    "services.optimizer.cli",  # optimizer
     "services.api.cli",  # api
+    "services.team_cli",  # run-team, eval
     "services.agent.cli",  # agent
     "services.agent.sim_cli",  # sim-agent
     "services.export_cli",  # export

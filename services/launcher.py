@@ -54,6 +54,18 @@ def service_plan(settings: Settings) -> list[ServiceSpec]:
             settings.mapper_metrics_port,
         ),
         ServiceSpec(
+            "placerec",
+            ["hivemap", "placerec"],
+            {**common, "HIVEMAP_METRICS_PORT": str(settings.placerec_metrics_port)},
+            settings.placerec_metrics_port,
+        ),
+        ServiceSpec(
+            "optimizer",
+            ["hivemap", "optimizer"],
+            {**common, "HIVEMAP_METRICS_PORT": str(settings.optimizer_metrics_port)},
+            settings.optimizer_metrics_port,
+        ),
+        ServiceSpec(
             "api",
             ["hivemap", "api"],
             {
@@ -178,6 +190,8 @@ def _print_urls(stack: Stack) -> None:
     print(f"redis        : {s.redis_url}")
     print(f"api          : http://{s.api_host}:{s.api_port}/  (viewer), /agents, /docs")
     print(f"mapper       : http://127.0.0.1:{s.mapper_metrics_port}/metrics")
+    print(f"placerec     : http://127.0.0.1:{s.placerec_metrics_port}/metrics")
+    print(f"optimizer    : http://127.0.0.1:{s.optimizer_metrics_port}/metrics")
     print("Ctrl-C stops everything.", flush=True)
 
 

@@ -41,6 +41,22 @@ def map_correction(map_id: str) -> str:
     return f"{ROOT}/map/{check_id(map_id, 'map')}/correction"
 
 
+def map_optimize(map_id: str) -> str:
+    return f"{ROOT}/map/{check_id(map_id, 'map')}/optimize"
+
+
+def map_merged(map_id: str) -> str:
+    return f"{ROOT}/map/{check_id(map_id, 'map')}/merged"
+
+
+def map_of(key: str) -> str | None:
+    """The map chunk of ``hivemap/map/{map}/...``."""
+    parts = str(key).split("/")
+    if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "map":
+        return parts[2]
+    return None
+
+
 MATCH = f"{ROOT}/match"
 MAPPER_STATE = f"{ROOT}/mapper/state"  # queryable: digest of every map and handler
 
@@ -49,6 +65,8 @@ ALL_AGENT_KF = f"{ROOT}/agent/*/up/kf"
 ALL_AGENT_POSE = f"{ROOT}/agent/*/up/pose"
 ALL_MAP_KF = f"{ROOT}/map/*/kf"
 ALL_MAP_CORRECTION = f"{ROOT}/map/*/correction"
+ALL_MAP_OPTIMIZE = f"{ROOT}/map/*/optimize"
+ALL_MAP_MERGED = f"{ROOT}/map/*/merged"
 
 
 def agent_of(key: str) -> str | None:

@@ -440,6 +440,200 @@ class MapChunk:
         )
 
 
+# --- server-side collaboration messages ------------------------------------------------
+# Column-wise records: every field is a scalar or an array with a fixed dtype, described
+# once in ``FIELDS`` so encoding, validation and golden tests share one definition.
+# Shapes use None for a free dimension and a field name for "as long as that field".
+
+
+class _Record:
+    SCHEMA: ClassVar[str] = ""
+    # name -> ("int" | "str" | "float" | "dict") or (dtype, shape)
+    FIELDS: ClassVar[dict[str, Any]] = {}
+    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+
+    def encode(self) -> bytes:
+        d = {"schema": self.SCHEMA}
+        for name in self.FIELDS:
+            v = getattr(self, name)
+            if v is None and name in self.OPTIONAL:
+                continue
+            d[name] = v
+        return packb(d)
+
+    @classmethod
+    def decode(cls, data: bytes):
+        d = _envelope(data, cls.SCHEMA)
+        out: dict[str, Any] = {}
+        lengths: dict[str, int] = {}
+        for name, spec in cls.FIELDS.items():
+            if name not in d and name in cls.OPTIONAL:
+                out[name] = None
+                continue
+            v = _get(d, name)
+            if spec == "int":
+                out[name] = _int(v, name)
+            elif spec == "str":
+                out[name] = _str(v, name)
+            elif spec == "float":
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise DecodeError(f"{name}: expected a number")
+                out[name] = float(v)
+            elif spec == "dict":
+                if not isinstance(v, dict):
+                    raise DecodeError(f"{name}: expected a map")
+                out[name] = v
+            else:
+                dtype, shape = spec
+                shp = tuple(lengths.get(x, -1) if isinstance(x, str) else x for x in shape)
+                if any(x == -1 for x in shp):
+                    raise DecodeError(f"{name}: length field missing")
+                a = _arr(v, name, dtype, shp)
+                if a.dtype.kind == "f" and name not in cls.NAN_OK and not np.all(np.isfinite(a)):
+                    raise DecodeError(f"{name}: not finite")
+                out[name] = a
+                lengths[name] = len(a) if a.ndim else 0
+        return cls(**out)
+
+    NAN_OK: ClassVar[tuple[str, ...]] = ()
+
+
+@dataclass
+class KeyframeEvent(_Record):
+    """Mapper -> placerec on ``hivemap/map/{map}/kf``: a keyframe was registered. Carries
+    what place recognition needs, points in the keyframe's own camera frame (so a later
+    map correction does not make them stale) and its covisible neighbours."""
+
+    SCHEMA: ClassVar[str] = "hivemap.kf_event/1"
+    FIELDS: ClassVar[dict[str, Any]] = {
+        "map_id": "str", "agent": "str", "gid": "int", "kf_id": "int", "stamp_ns": "int",
+        "T_m_kf": ("<f8", (4, 4)), "fx": "float",
+        "xy": ("<f8", (None, 2)), "octaves": ("|u1", ("xy",)),
+        "descriptors": ("|u1", ("xy", 32)), "mp": ("<i8", ("xy",)),
+        "p_c": ("<f8", ("xy", 3)), "covis": ("<i8", (None,)),
+    }  # fmt: skip
+    NAN_OK: ClassVar[tuple[str, ...]] = ("p_c",)
+    map_id: str
+    agent: str
+    gid: int
+    kf_id: int
+    stamp_ns: int
+    T_m_kf: np.ndarray
+    fx: float
+    xy: np.ndarray  # (N, 2) undistorted normalized coordinates
+    octaves: np.ndarray
+    descriptors: np.ndarray
+    mp: np.ndarray  # (N,) map-point gid per keypoint, -1 none
+    p_c: np.ndarray  # (N, 3) map point in this keyframe's camera frame, NaN none
+    covis: np.ndarray  # covisible keyframe gids (weight >= 15)
+
+
+@dataclass
+class Match(_Record):
+    """Placerec -> mapper on ``hivemap/match``: a verified place match between a query
+    keyframe and a candidate (same map: a loop; different maps: a merge).
+    ``S_q_c`` maps points in the candidate's camera frame into the query's:
+    p_q = s R p_c + t, as the matrix [[sR, t], [0, 1]]."""
+
+    SCHEMA: ClassVar[str] = "hivemap.match/1"
+    FIELDS: ClassVar[dict[str, Any]] = {
+        "query_map": "str", "query_gid": "int", "cand_map": "str", "cand_gid": "int",
+        "S_q_c": ("<f8", (4, 4)), "mp_q": ("<i8", (None,)), "mp_c": ("<i8", ("mp_q",)),
+        "inliers": "int", "score": "float", "sent_ns": "int",
+    }  # fmt: skip
+    query_map: str
+    query_gid: int
+    cand_map: str
+    cand_gid: int
+    S_q_c: np.ndarray
+    mp_q: np.ndarray  # matched map-point gids, pairwise
+    mp_c: np.ndarray
+    inliers: int
+    score: float
+    sent_ns: int
+
+
+@dataclass
+class OptimizeRequest(_Record):
+    """Mapper -> optimizer on ``hivemap/map/{map}/optimize``: a copy of the map to
+    optimize (CCM-SLAM: the optimization works on a copy so ingestion goes on). A newer
+    request for the same map supersedes one in progress."""
+
+    SCHEMA: ClassVar[str] = "hivemap.optimize/1"
+    FIELDS: ClassVar[dict[str, Any]] = {
+        "map_id": "str", "version": "int", "reason": "str", "sent_ns": "int", "fx": "float",
+        "kf_gids": ("<i8", (None,)), "T_m_kf": ("<f8", ("kf_gids", 4, 4)),
+        "fixed_gids": ("<i8", (None,)), "edges": ("<i8", (None, 2)),
+        "loops": ("<i8", (None, 2)), "S_loop": ("<f8", ("loops", 4, 4)),
+        "mp_gids": ("<i8", (None,)), "mp_pos": ("<f8", ("mp_gids", 3)),
+        "mp_ref": ("<i8", ("mp_gids",)),
+        "obs_kf": ("<i4", (None,)), "obs_mp": ("<i4", ("obs_kf",)),
+        "obs_xy": ("<f8", ("obs_kf", 2)), "obs_octave": ("|u1", ("obs_kf",)),
+    }  # fmt: skip
+    map_id: str
+    version: int
+    reason: str
+    sent_ns: int
+    fx: float
+    kf_gids: np.ndarray
+    T_m_kf: np.ndarray
+    fixed_gids: np.ndarray
+    edges: np.ndarray
+    loops: np.ndarray
+    S_loop: np.ndarray
+    mp_gids: np.ndarray
+    mp_pos: np.ndarray
+    mp_ref: np.ndarray
+    obs_kf: np.ndarray
+    obs_mp: np.ndarray
+    obs_xy: np.ndarray
+    obs_octave: np.ndarray
+
+
+@dataclass
+class CorrectionMsg(_Record):
+    """Optimizer -> mapper on ``hivemap/map/{map}/correction``: optimized keyframe poses
+    (SE(3), camera to map) with the Sim(3) scale each got, and point positions.
+    The mapper applies it and carries keyframes that arrived meanwhile along through
+    their relative poses (CCM-SLAM Fig. 4)."""
+
+    SCHEMA: ClassVar[str] = "hivemap.correction/1"
+    FIELDS: ClassVar[dict[str, Any]] = {
+        "map_id": "str", "base_version": "int", "sent_ns": "int",
+        "kf_gids": ("<i8", (None,)), "T_m_kf": ("<f8", ("kf_gids", 4, 4)),
+        "kf_scale": ("<f8", ("kf_gids",)),
+        "mp_gids": ("<i8", (None,)), "mp_pos": ("<f8", ("mp_gids", 3)),
+        "outlier_kf": ("<i8", (None,)), "outlier_mp": ("<i8", ("outlier_kf",)),
+        "stats": "dict",
+    }  # fmt: skip
+    map_id: str
+    base_version: int
+    sent_ns: int
+    kf_gids: np.ndarray
+    T_m_kf: np.ndarray
+    kf_scale: np.ndarray
+    mp_gids: np.ndarray
+    mp_pos: np.ndarray
+    outlier_kf: np.ndarray  # observations the optimization found to be outliers:
+    outlier_mp: np.ndarray  # (keyframe gid, map-point gid) pairs
+    stats: dict
+
+
+@dataclass
+class MapMerged(_Record):
+    """Mapper -> all on ``hivemap/map/{source}/merged``: map ``source`` became part of
+    ``target``; ``S_t_s`` (4x4 [[sR, t], [0, 1]]) carried its frame into the target's."""
+
+    SCHEMA: ClassVar[str] = "hivemap.map_merged/1"
+    FIELDS: ClassVar[dict[str, Any]] = {
+        "source": "str", "target": "str", "S_t_s": ("<f8", (4, 4)), "sent_ns": "int",
+    }  # fmt: skip
+    source: str
+    target: str
+    S_t_s: np.ndarray
+    sent_ns: int
+
+
 def _envelope(data: bytes, schema: str) -> dict:
     d = unpackb(data)
     if not isinstance(d, dict):

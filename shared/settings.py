@@ -58,6 +58,26 @@ class MapperSettings(BaseModel):
     fuse: bool = True
     redundancy: bool = True
     redundancy_ratio: float = Field(0.98, gt=0, le=1)
+    # At most one map copy to the optimizer per map this often (a burst of matches
+    # right after two maps meet becomes one request).
+    optimize_min_interval_s: float = Field(3.0, ge=0)
+
+
+class PlacerecSettings(BaseModel):
+    """Place recognition (CCM-SLAM §4.7)."""
+
+    vocabulary: str = ""  # "" = the vocabulary shipped with the package
+    consistency: int = Field(3, ge=1)  # consecutive consistent keyframes before verifying
+    min_inliers: int = Field(20, ge=6)
+    min_matches: int = Field(40, ge=6)
+    # Same-agent keyframes this close in id are neighbours, not loop candidates.
+    loop_min_id_gap: int = Field(30, ge=0)
+
+
+class OptimizerSettings(BaseModel):
+    ba: bool = True
+    ba_max_iterations: int = Field(10, ge=0)
+    ba_time_budget_s: float = Field(8.0, gt=0)
 
 
 class Settings(BaseSettings):
@@ -70,6 +90,8 @@ class Settings(BaseSettings):
     inject: InjectSettings = Field(default_factory=InjectSettings)
     comm: CommSettings = Field(default_factory=CommSettings)
     mapper: MapperSettings = Field(default_factory=MapperSettings)
+    placerec: PlacerecSettings = Field(default_factory=PlacerecSettings)
+    optimizer: OptimizerSettings = Field(default_factory=OptimizerSettings)
     api_host: str = "127.0.0.1"
     api_port: int = Field(8000, ge=0, le=65535)
     metrics_host: str = "127.0.0.1"
@@ -77,5 +99,7 @@ class Settings(BaseSettings):
     metrics_port: int = Field(0, ge=0, le=65535)
     # Ports `hivemap up` gives the services that have no HTTP app of their own.
     mapper_metrics_port: int = Field(9101, ge=1, le=65535)
+    placerec_metrics_port: int = Field(9102, ge=1, le=65535)
+    optimizer_metrics_port: int = Field(9103, ge=1, le=65535)
     log_level: str = "INFO"
     log_json: bool = True

@@ -85,7 +85,6 @@ def test_compose_topology_equals_hivemap_up(clean_env):
     assert set(INFRA.values()) <= set(compose)
     ours = _hivemap_plan()
     built = {n: s for n, s in compose.items() if _is_hivemap_image(s)}
-    # placerec and optimizer join the plan in later issues; this fails until compose has them.
     assert set(built) == set(ours)
     for name, spec in ours.items():
         svc = built[name]

@@ -53,7 +53,9 @@ def _get(url: str, timeout: float = 2.0):
 
 def _env(api_port: int) -> dict[str, str]:
     return {**os.environ, "HIVEMAP_API_PORT": str(api_port),
-            "HIVEMAP_MAPPER_METRICS_PORT": str(free_port())}  # fmt: skip
+            "HIVEMAP_MAPPER_METRICS_PORT": str(free_port()),
+            "HIVEMAP_PLACEREC_METRICS_PORT": str(free_port()),
+            "HIVEMAP_OPTIMIZER_METRICS_PORT": str(free_port())}  # fmt: skip
 
 
 def _stop(proc: subprocess.Popen) -> set[int]:

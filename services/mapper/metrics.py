@@ -10,3 +10,9 @@ FEEDBACK_BYTES = Counter(
 )
 MAP_POINTS = Gauge("hivemap_map_points", "Map points per server map", ["map"])
 QUEUE_DEPTH = Gauge("hivemap_map_queue_depth", "Batches waiting for a map actor", ["map"])
+MATCHES = Counter("hivemap_matches_applied_total", "Verified place matches applied", ["kind"])
+MERGES = Counter("hivemap_map_merges_total", "Server maps fused into another")
+OPT_REQUESTS = Counter(
+    "hivemap_optimize_requests_total", "Map copies sent to the optimizer", ["reason"]
+)
+CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")

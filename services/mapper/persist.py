@@ -66,6 +66,9 @@ def _kf_fields(kf: ServerKeyframe, map_id: str) -> dict:
     }  # fmt: skip
 
 
+kf_fields = _kf_fields  # the fields a pose or association change rewrites
+
+
 def write_result(pipe, h: AgentHandler, res: IngestResult, names: dict[int, str]) -> None:
     """Everything ``res`` changed, in the caller's MULTI/EXEC pipeline."""
     smap = h.smap

@@ -36,6 +36,7 @@ from shared.store import Store, connect
 from shared.transport import Bus, Received, open_session
 
 from . import persist
+from .collab import Collaboration, Worker
 from .feedback import build_chunk
 from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
 from .redundancy import find_redundant
@@ -67,6 +68,7 @@ class MapActor:
         self.lock = threading.RLock()
         self.rng = random.Random(smap.map_id)
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
+        self.retired_into: str | None = None  # set when this map was merged into another
 
     def start(self) -> None:
         self.thread.start()
@@ -77,7 +79,13 @@ class MapActor:
             try:
                 h, batch, recv_ns, key = self.q.get(timeout=0.05)
             except queue.Empty:
+                if self.retired_into is not None:
+                    return  # merged away and drained
                 self._idle()
+                continue
+            if h.smap is not self.smap:
+                # The agent's map was merged into another after this batch was queued.
+                svc.actor(h.map_id).q.put((h, batch, recv_ns, key))
                 continue
             try:
                 with self.lock:
@@ -128,11 +136,13 @@ class MapperService:
         self.bus: Bus | None = None
         self._fb_last: dict[str, float] = {}
         self._fb_sent: dict[str, set[int]] = {}
+        self.collab = Collaboration(self, settings.mapper.optimize_min_interval_s)
 
     # --- state ------------------------------------------------------------------------
     def load(self) -> None:
         self.maps, self.handlers = persist.load_all(self.store, self.params)
         self.names = persist.index_names(self.store)
+        self.collab.load()
         for h in self.handlers.values():
             self.aliases.update(h.aliases)
             h.aliases = self.aliases
@@ -217,6 +227,7 @@ class MapperService:
                   np.array(held, np.int64), np.array(missing, np.int64))  # fmt: skip
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
+            self.collab.publish_events(h.map_id, res.new_kfs)
         now_ns = time.time_ns()
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
@@ -349,10 +360,20 @@ class MapperService:
         self._queryable = self.session.declare_queryable(keys.MAPPER_STATE, self._on_state_query)
         self.kf_q = self.bus.subscribe(keys.ALL_AGENT_KF)
         self.pose_q = self.bus.subscribe(keys.ALL_AGENT_POSE, maxsize=256)
-        for name, fn in (("kf", self._dispatch), ("pose", self._pose_worker)):
+        c = self.collab
+        workers = [
+            Worker("mapper-match", self.bus.subscribe(keys.MATCH), c.on_match_bytes, self._stop),
+            Worker("mapper-correction", self.bus.subscribe(keys.ALL_MAP_CORRECTION),
+                   c.on_correction_bytes, self._stop),
+        ]  # fmt: skip
+        for name, fn in (("kf", self._dispatch), ("pose", self._pose_worker),
+                         ("optimize", self._optimize_scheduler)):  # fmt: skip
             t = threading.Thread(target=fn, name=f"mapper-{name}", daemon=True)
             t.start()
             self._threads.append(t)
+        for w in workers:
+            w.thread.start()
+            self._threads.append(w.thread)
         UP.labels(SERVICE).set(1)
         log.info("mapper running")
 
@@ -371,6 +392,15 @@ class MapperService:
             except Exception:
                 REJECTED.labels(SERVICE, item.key, "internal").inc()
                 log.exception("dispatch failed", extra={"key": item.key})
+
+    def _optimize_scheduler(self) -> None:
+        """Sends debounced optimization requests (a copy of the map each)."""
+        while not self._stop.wait(0.25):
+            for map_id, reason in self.collab.due(time.monotonic()):
+                try:
+                    self.collab.request(map_id, reason)
+                except Exception:
+                    log.exception("optimization request failed", extra={"map": map_id})
 
     def _pose_worker(self) -> None:
         while not self._stop.is_set():

@@ -1,0 +1,365 @@
+"""The mapper's side of collaboration: keyframe events out to place recognition,
+verified matches in (map fusion or loop), optimization requests out, corrections in.
+
+The mapper owns every map, so it applies merges, loop edges and corrections itself,
+under the map actors' locks; the optimizer only ever works on a copy (CCM-SLAM §4.9).
+A merge locks both maps' actors in map-id order (no lock-order deadlock) and then
+re-points the merged map's agents and actor at the surviving map; batches already
+queued for the retired actor are forwarded by it (see ``MapActor``).
+
+Optimization requests are debounced per map: a burst of matches right after two maps
+meet (every new keyframe of both agents re-finds the place) becomes one request with
+all constraints, at most one per ``optimize_min_interval_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from shared import keys
+from shared.geometry import Sim3
+from shared.messages import (
+    CorrectionMsg,
+    DecodeError,
+    KeyframeEvent,
+    MapMerged,
+    Match,
+    OptimizeRequest,
+    packb,
+)
+from shared.metrics import REJECTED
+from shared.store import P, k_agent, k_kf, k_map, k_map_kfs
+
+from . import persist
+from .merge import (
+    LoopConstraint,
+    add_loop_edge,
+    fuse_matched,
+    map_to_map,
+    move_map,
+    points_in_camera,
+)
+from .metrics import CORRECTIONS, MATCHES, MERGES, OPT_REQUESTS
+
+if TYPE_CHECKING:
+    from .service import MapperService
+
+log = logging.getLogger(__name__)
+SERVICE = "mapper"
+
+
+def loops_key(map_id: str) -> str:
+    return f"{k_map(map_id)}:loops"
+
+
+class Collaboration:
+    def __init__(self, svc: MapperService, optimize_min_interval_s: float = 3.0) -> None:
+        self.svc = svc
+        self.loops: dict[str, list[LoopConstraint]] = {}
+        self.merged_into: dict[str, str] = {}
+        self.min_interval = optimize_min_interval_s
+        self._dirty: dict[str, str] = {}  # map -> reason
+        self._last_request: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    # --- state --------------------------------------------------------------------------
+    def load(self) -> None:
+        """Loop constraints from Redis, and the loop edges they make."""
+        r = self.svc.store.r
+        for map_id, smap in self.svc.maps.items():
+            for field, v in r.hgetall(loops_key(map_id)).items():
+                q, c = (int(x) for x in field.decode().split(":"))
+                S = np.frombuffer(v, "<f8").reshape(4, 4).copy()
+                self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
+                add_loop_edge(smap, q, c)
+
+    def map_of_kf(self, g: int) -> str | None:
+        for map_id, smap in list(self.svc.maps.items()):
+            if g in smap.kfs or g in smap.culled:
+                return map_id
+        return None
+
+    # --- keyframe events ---------------------------------------------------------------
+    def kf_event(self, map_id: str, g: int) -> KeyframeEvent | None:
+        smap = self.svc.maps.get(map_id)
+        kf = smap.kfs.get(g) if smap else None
+        if kf is None:
+            return None
+        h = self.svc.handlers.get(kf.agent)
+        fx = h.camera.fx if h is not None else 458.654
+        return KeyframeEvent(
+            map_id, kf.agent, g, kf.id, kf.stamp_ns, kf.T_m_kf.copy(), float(fx),
+            kf.xy.astype(np.float64), kf.octaves.astype(np.uint8), kf.descriptors,
+            kf.mp.astype(np.int64), points_in_camera(smap, g),
+            np.array(smap.covisible(g), np.int64),
+        )  # fmt: skip
+
+    def publish_events(self, map_id: str, gids: list[int]) -> None:
+        bus = self.svc.bus
+        if bus is None:
+            return
+        for g in gids:
+            ev = self.kf_event(map_id, g)
+            if ev is not None:
+                bus.put(keys.map_kf(map_id), ev.encode())
+
+    # --- matches -----------------------------------------------------------------------
+    def on_match_bytes(self, key: str, payload: bytes) -> str | None:
+        try:
+            m = Match.decode(payload)
+        except DecodeError as e:
+            REJECTED.labels(SERVICE, key, "invalid").inc()
+            log.warning("rejected match on %s: %s", key, e)
+            return None
+        return self.on_match(m)
+
+    def on_match(self, m: Match) -> str | None:
+        """Apply a verified match; returns "merge", "loop" or None (ignored)."""
+        qm, cm = self.map_of_kf(m.query_gid), self.map_of_kf(m.cand_gid)
+        if qm is None or cm is None:
+            REJECTED.labels(SERVICE, keys.MATCH, "unknown_kf").inc()
+            log.warning("match names a keyframe no map holds: %d / %d", m.query_gid, m.cand_gid)
+            return None
+        if qm == cm:
+            return self._loop(qm, m)
+        return self._merge(qm, cm, m)
+
+    def _locks(self, *map_ids: str):
+        return [self.svc.actor(mid).lock for mid in sorted(set(map_ids))]
+
+    def _loop(self, map_id: str, m: Match) -> str | None:
+        svc = self.svc
+        locks = self._locks(map_id)
+        for lk in locks:
+            lk.acquire()
+        try:
+            smap = svc.maps[map_id]
+            q, c = m.query_gid, m.cand_gid
+            if q not in smap.kfs or c not in smap.kfs:
+                return None
+            kq = smap.kfs[q]
+            # Already tied (a loop edge near it, or they share points after an earlier
+            # fusion): the pose graph has this constraint already.
+            if c in kq.loop_edges or smap.covis.get(q, {}).get(c, 0) >= 15:
+                return None
+            add_loop_edge(smap, q, c)
+            fres = fuse_matched(smap, m.mp_q, m.mp_c)
+            lc = LoopConstraint(q, c, m.S_q_c.copy())
+            self.loops.setdefault(map_id, []).append(lc)
+            self._persist(map_id, fres.aliases, fres.changed_kfs, [lc])
+        finally:
+            for lk in reversed(locks):
+                lk.release()
+        MATCHES.labels("loop").inc()
+        log.info("loop closed in %s: %d <-> %d (%d inliers)", map_id, q, c, m.inliers)
+        self.mark_dirty(map_id, "loop")
+        return "loop"
+
+    def _merge(self, qm: str, cm: str, m: Match) -> str | None:
+        svc = self.svc
+        locks = self._locks(qm, cm)
+        for lk in locks:
+            lk.acquire()
+        try:
+            Q, C = svc.maps[qm], svc.maps[cm]
+            if m.query_gid not in Q.kfs or m.cand_gid not in C.kfs:
+                return None
+            S_Q_C = map_to_map(Q.kfs[m.query_gid].T_m_kf, m.S_q_c, C.kfs[m.cand_gid].T_m_kf)
+            # The bigger map stays put: fewer poses change, and its agents see no jump.
+            if (len(C.kfs), cm) > (len(Q.kfs), qm):
+                target, source, S_t_s = C, Q, S_Q_C.inverse()
+            else:
+                target, source, S_t_s = Q, C, S_Q_C
+            moved = move_map(target, source, S_t_s)
+            for h in svc.handlers.values():
+                if h.smap is source:
+                    h.smap = target
+                    h.S_m_l = S_t_s @ h.S_m_l
+            add_loop_edge(target, m.query_gid, m.cand_gid)
+            fres = fuse_matched(target, m.mp_q, m.mp_c)
+            lc = LoopConstraint(m.query_gid, m.cand_gid, m.S_q_c.copy())
+            old = self.loops.pop(source.map_id, [])
+            self.loops.setdefault(target.map_id, []).extend(old + [lc])
+            self.merged_into[source.map_id] = target.map_id
+            svc.actors[source.map_id].retired_into = target.map_id
+            self._persist_merge(target.map_id, source.map_id, moved.moved_kfs, moved.moved_mps)
+            self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
+            svc.maps.pop(source.map_id, None)
+        finally:
+            for lk in reversed(locks):
+                lk.release()
+        MATCHES.labels("merge").inc()
+        MERGES.inc()
+        if svc.bus is not None:
+            note = MapMerged(source.map_id, target.map_id, S_t_s.matrix(), time.time_ns())
+            svc.bus.put(keys.map_merged(source.map_id), note.encode())
+        log.info("merged map %s into %s (scale %.4f, %d keyframes moved)", source.map_id,
+                 target.map_id, S_t_s.s, len(moved.moved_kfs))  # fmt: skip
+        self.mark_dirty(target.map_id, "merge")
+        return "merge"
+
+    def _persist(self, map_id: str, aliases: dict[int, int], changed: set[int],
+                 loops: list[LoopConstraint]) -> None:  # fmt: skip
+        svc = self.svc
+        smap = svc.maps[map_id]
+        pipe = svc.store.pipeline()
+        for drop, keep in aliases.items():
+            pipe.hset(persist.K_ALIAS, str(drop), str(keep))
+        svc.aliases.update(aliases)
+        persist.delete_points(pipe, set(aliases), svc.names)
+        for g in changed:
+            kf = smap.kfs.get(g)
+            if kf is not None:
+                pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, map_id))
+        for lc in loops:
+            pipe.hset(loops_key(map_id), f"{lc.q}:{lc.c}", lc.S_q_c.astype("<f8").tobytes())
+        pipe.execute()
+
+    def _persist_merge(self, target: str, source: str, kfs: list[int], mps: list[int]) -> None:
+        svc = self.svc
+        smap = svc.maps[target]
+        pipe = svc.store.pipeline()
+        for g in kfs:
+            kf = smap.kfs[g]
+            pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, target))
+            pipe.sadd(k_map_kfs(target), f"{kf.agent}:{kf.id}")
+        persist.write_points(pipe, smap, mps, svc.names)
+        for h in svc.handlers.values():
+            if h.smap is smap:
+                persist.write_handler(pipe, h)
+                for kid in list(h.removed):
+                    # move_map rescaled the culled anchors (relative poses in map units).
+                    entry = smap.culled.get(h.kf_gid(kid))
+                    if entry is not None:
+                        h.removed[kid] = entry
+                        pipe.hset(f"{k_agent(h.agent)}:removed", str(kid), packb(list(entry)))
+        pipe.hset(k_map(source), "merged_into", target)
+        pipe.srem(f"{P}:maps", source)
+        pipe.delete(k_map_kfs(source), loops_key(source))
+        pipe.execute()
+
+    # --- optimization ------------------------------------------------------------------
+    def mark_dirty(self, map_id: str, reason: str) -> None:
+        with self._lock:
+            self._dirty[map_id] = reason
+
+    def due(self, now: float) -> list[tuple[str, str]]:
+        with self._lock:
+            out = []
+            for map_id, reason in list(self._dirty.items()):
+                map_id = self.merged_into.get(map_id, map_id)
+                if now - self._last_request.get(map_id, -1e9) >= self.min_interval:
+                    out.append((map_id, reason))
+                    self._dirty.pop(map_id, None)
+            for map_id in [m for m in self._dirty if m in self.merged_into]:
+                self._dirty.pop(map_id, None)
+            return out
+
+    def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
+        from services.optimizer.snapshot import snapshot_from_map
+
+        svc = self.svc
+        smap = svc.maps.get(map_id)
+        if smap is None or len(smap.kfs) < 3:
+            return None
+        with svc.actor(map_id).lock:
+            loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
+                     if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
+            snap = snapshot_from_map(smap, loops)
+        req = OptimizeRequest(
+            map_id, snap.version, reason, time.time_ns(), float(snap.fx), snap.kf_gids,
+            snap.T_m_kf, snap.fixed_gids, snap.edges, snap.loops, snap.S_loop, snap.mp_gids,
+            snap.mp_pos, snap.mp_ref, snap.obs_kf.astype(np.int32),
+            snap.obs_mp.astype(np.int32), snap.obs_xy, snap.obs_octave.astype(np.uint8),
+        )  # fmt: skip
+        self._last_request[map_id] = time.monotonic()
+        if svc.bus is not None:
+            svc.bus.put(keys.map_optimize(map_id), req.encode())
+        OPT_REQUESTS.labels(reason).inc()
+        log.info("optimization requested for %s (%s): %d keyframes, %d loops", map_id, reason,
+                 len(snap.kf_gids), len(snap.loops))  # fmt: skip
+        return req
+
+    def on_correction_bytes(self, key: str, payload: bytes) -> bool:
+        try:
+            c = CorrectionMsg.decode(payload)
+        except DecodeError as e:
+            REJECTED.labels(SERVICE, key, "invalid").inc()
+            log.warning("rejected correction on %s: %s", key, e)
+            return False
+        return self.on_correction(c)
+
+    def on_correction(self, c: CorrectionMsg) -> bool:
+        from services.optimizer.snapshot import Correction
+
+        from .correction import apply_correction
+
+        svc = self.svc
+        smap = svc.maps.get(c.map_id)
+        if smap is None:
+            # The map was merged away meanwhile: a request for the merged map follows.
+            REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
+            return False
+        corr = Correction(
+            map_id=c.map_id, base_version=c.base_version, kf_gids=c.kf_gids, T_m_kf=c.T_m_kf,
+            kf_scale=c.kf_scale, mp_gids=c.mp_gids, mp_pos=c.mp_pos, stats=c.stats,
+        )  # fmt: skip
+        with svc.actor(c.map_id).lock:
+            res = apply_correction(smap, corr)
+            for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
+                kf, p = smap.kfs.get(kg), smap.mps.get(mg)
+                if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
+                    smap._unobserve(kf, p.obs[kg])
+                    res.changed_kfs.add(kg)
+            self._rescale_handlers(smap, corr)
+            pipe = svc.store.pipeline()
+            for g in res.changed_kfs:
+                kf = smap.kfs.get(g)
+                if kf is not None:
+                    pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, c.map_id))
+            persist.write_points(pipe, smap, sorted(res.changed_mps), svc.names)
+            for h in svc.handlers.values():
+                if h.smap is smap:
+                    persist.write_handler(pipe, h)
+            pipe.execute()
+        CORRECTIONS.inc()
+        log.info("applied correction to %s: %d keyframes, %d points (%s)", c.map_id,
+                 len(res.changed_kfs), len(res.changed_mps), c.stats)  # fmt: skip
+        return True
+
+    def _rescale_handlers(self, smap, corr) -> None:
+        """Keyframes chained after the correction continue at the corrected scale of
+        the agent's newest keyframe (its relative translations are in agent units)."""
+        scale = dict(zip(corr.kf_gids.tolist(), corr.kf_scale.tolist(), strict=True))
+        for h in self.svc.handlers.values():
+            if h.smap is not smap:
+                continue
+            s = scale.get(h.kf_gid(h.latest_kf))
+            if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
+                h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
+
+
+class Worker:
+    """One thread draining one queue into a handler (Zenoh callbacks only enqueue)."""
+
+    def __init__(self, name: str, q: queue.Queue, fn, stop: threading.Event) -> None:
+        self.q, self.fn, self.stop = q, fn, stop
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                item = self.q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self.fn(item.key, item.payload)
+            except Exception:
+                REJECTED.labels(SERVICE, item.key, "internal").inc()
+                log.exception("%s failed", self.thread.name)

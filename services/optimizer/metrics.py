@@ -1,0 +1,13 @@
+"""Optimizer metrics (the shared ones are in shared/metrics.py)."""
+
+from __future__ import annotations
+
+from prometheus_client import Counter
+
+OPTIMIZATIONS = Counter(
+    "hivemap_optimizations_total", "Global optimizations finished and published", ["reason"]
+)
+SUPERSEDED = Counter(
+    "hivemap_optimizations_superseded_total",
+    "Optimization requests replaced by a newer copy of the same map before finishing",
+)

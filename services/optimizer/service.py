@@ -1,0 +1,190 @@
+"""The optimizer service: map copies in, corrections out (CCM-SLAM §4.9).
+
+The mapper sends a copy of a map on ``hivemap/map/{map}/optimize`` after a merge or a
+loop; this service runs the Sim(3) pose graph over the essential graph plus loop
+edges, then global BA, and publishes the result on ``hivemap/map/{map}/correction``.
+Requests only enqueue (Zenoh callback); one worker thread optimizes. The newest
+request per map wins: one that arrives while its map is being optimized makes the
+worker drop the run at the next stage boundary (after PGO, after BA) and restart from
+the new copy, which carries the new constraint.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from shared import keys
+from shared.messages import CorrectionMsg, DecodeError, OptimizeRequest
+from shared.metrics import PROCESSING, REJECTED, UP
+from shared.settings import Settings
+from shared.transport import Bus, open_session
+
+from .global_ba import BAParams, bundle_adjust
+from .metrics import OPTIMIZATIONS, SUPERSEDED
+from .pose_graph import apply_to_snapshot, optimize_pose_graph
+from .snapshot import Correction, MapSnapshot
+
+log = logging.getLogger(__name__)
+SERVICE = "optimizer"
+
+
+class Superseded(Exception):
+    """A newer copy of the map arrived; this run's result would be stale."""
+
+
+def snapshot_of(req: OptimizeRequest) -> MapSnapshot:
+    return MapSnapshot(
+        map_id=req.map_id, version=req.version, kf_gids=req.kf_gids, T_m_kf=req.T_m_kf,
+        fixed_gids=req.fixed_gids, edges=req.edges, loops=req.loops, S_loop=req.S_loop,
+        mp_gids=req.mp_gids, mp_pos=req.mp_pos, mp_ref=req.mp_ref, obs_kf=req.obs_kf,
+        obs_mp=req.obs_mp, obs_xy=req.obs_xy, obs_octave=req.obs_octave, fx=req.fx,
+    )  # fmt: skip
+
+
+def correction_msg(corr: Correction, sent_ns: int) -> CorrectionMsg:
+    out = np.asarray(corr.outliers, np.int64).reshape(-1, 2)
+    stats = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else str(v))
+             for k, v in corr.stats.items()}  # fmt: skip
+    return CorrectionMsg(
+        corr.map_id, int(corr.base_version), sent_ns, corr.kf_gids.astype(np.int64),
+        corr.T_m_kf, corr.kf_scale.astype(np.float64), corr.mp_gids.astype(np.int64),
+        corr.mp_pos, out[:, 0].copy(), out[:, 1].copy(), stats,
+    )  # fmt: skip
+
+
+class OptimizerService:
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self._pending: dict[str, OptimizeRequest] = {}
+        self._cv = threading.Condition()
+        self._stop = threading.Event()
+        self.session = None
+        self.bus: Bus | None = None
+        self._thread = threading.Thread(target=self._run, name="optimizer", daemon=True)
+        self.done: list[Correction] = []  # results, newest last (tests read them)
+
+    # --- transport-free core -------------------------------------------------------------
+    def submit(self, key: str, payload: bytes) -> OptimizeRequest | None:
+        try:
+            req = OptimizeRequest.decode(payload)
+            if keys.map_of(key) not in (None, req.map_id):
+                raise DecodeError(f"map {req.map_id!r} sent on the key of {keys.map_of(key)!r}")
+            errs = snapshot_of(req).check()
+            if errs:
+                raise DecodeError("inconsistent map copy: " + "; ".join(errs[:3]))
+        except (DecodeError, ValueError) as e:
+            REJECTED.labels(SERVICE, key, "invalid").inc()
+            log.warning("rejected optimization request on %s: %s", key, e)
+            return None
+        with self._cv:
+            if req.map_id in self._pending:
+                SUPERSEDED.inc()
+            self._pending[req.map_id] = req
+            self._cv.notify()
+        return req
+
+    def _newer(self, map_id: str) -> bool:
+        with self._cv:
+            return map_id in self._pending
+
+    def optimize(self, req: OptimizeRequest) -> Correction:
+        """PGO then BA on one map copy; raises Superseded at a stage boundary when a
+        newer copy of the same map is waiting."""
+        o = self.settings.optimizer
+        t0 = time.perf_counter()
+        snap = snapshot_of(req)
+        corr = None
+        if len(snap.loops):
+            corr = optimize_pose_graph(snap)
+            snap = apply_to_snapshot(snap, corr)
+            if self._newer(req.map_id):
+                raise Superseded
+        stats = dict(corr.stats) if corr else {}
+        if o.ba and o.ba_max_iterations > 0:
+            ba = bundle_adjust(snap, BAParams(max_iters=o.ba_max_iterations,
+                                              time_budget_s=o.ba_time_budget_s))  # fmt: skip
+            stats.update(ba.stats)
+            if corr is not None:
+                ba.kf_scale = corr.kf_scale
+            corr = ba
+            if self._newer(req.map_id):
+                raise Superseded
+        if corr is None:
+            corr = Correction(
+                snap.map_id, snap.version, snap.kf_gids.copy(), snap.T_m_kf.copy(),
+                np.ones(snap.n_kf), snap.mp_gids.copy(), snap.mp_pos.copy(),
+            )  # fmt: skip
+        stats["seconds"] = time.perf_counter() - t0
+        stats["reason"] = req.reason
+        corr.stats = stats
+        return corr
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._cv:
+                while not self._pending and not self._stop.is_set():
+                    self._cv.wait(0.5)
+                if self._stop.is_set():
+                    return
+                map_id = next(iter(self._pending))
+                req = self._pending.pop(map_id)
+            t0 = time.perf_counter()
+            try:
+                corr = self.optimize(req)
+            except Superseded:
+                SUPERSEDED.inc()
+                log.info("optimization of %s restarted: a newer copy arrived", map_id)
+                continue
+            except Exception:
+                REJECTED.labels(SERVICE, keys.map_optimize(map_id), "internal").inc()
+                log.exception("optimization of %s failed", map_id)
+                continue
+            PROCESSING.labels(SERVICE, "optimize").observe(time.perf_counter() - t0)
+            OPTIMIZATIONS.labels(req.reason).inc()
+            self.done.append(corr)
+            if self.bus is not None:
+                self.bus.put(
+                    keys.map_correction(map_id), correction_msg(corr, time.time_ns()).encode()
+                )
+            log.info("optimized %s: %d keyframes, %d points in %.2f s", map_id,
+                     len(corr.kf_gids), len(corr.mp_gids), corr.stats["seconds"])  # fmt: skip
+
+    # --- service loop --------------------------------------------------------------------
+    def start(self) -> None:
+        self.session = open_session(self.settings.zenoh)
+        self.bus = Bus(self.session, SERVICE, self.settings.inject)
+        q = self.bus.subscribe(keys.ALL_MAP_OPTIMIZE)
+        self._rx = threading.Thread(target=self._receive, args=(q,), name="optimizer-rx",
+                                    daemon=True)  # fmt: skip
+        self._rx.start()
+        self._thread.start()
+        UP.labels(SERVICE).set(1)
+        log.info("optimizer running")
+
+    def _receive(self, q) -> None:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                item = q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            self.submit(item.key, item.payload)
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+        for t in (getattr(self, "_rx", None), self._thread):
+            if t is not None and t.is_alive():
+                t.join(timeout=30)
+        UP.labels(SERVICE).set(0)
+        if self.bus:
+            self.bus.close()
+        if self.session is not None:
+            self.session.close()
+            self.session = None

@@ -1,0 +1,210 @@
+"""Place recognition over every server map (CCM-SLAM §4.7), transport-free.
+
+Per registered keyframe (a ``KeyframeEvent`` from the mapper):
+
+1. BoW vector and feature vector from the shipped vocabulary;
+2. an inter-map query (keyframes of every other map) and an intra-map loop query
+   (its own map, without its covisible neighbours and without the same agent's
+   keyframes within ``loop_min_id_gap`` ids, which are odometry, not loops);
+3. ORB-SLAM's temporal consistency per agent and query kind: a candidate is verified
+   only once ``consistency`` consecutive keyframes found consistent candidate groups;
+4. geometric verification: BoW-restricted matches, Sim(3) RANSAC on the 3D-3D pairs
+   (monocular maps differ in scale), guided matching of the candidate's covisible
+   neighbourhood and a robust refinement (``verify.verify``);
+5. a verified candidate becomes a ``Match`` with its Sim(3) and matched point pairs.
+
+The recognizer keeps its own copy of what it needs of each keyframe (descriptors,
+points in the keyframe's camera frame, its pose at registration for neighbourhood
+geometry) and a covisibility graph grown from the events, so it never asks the
+mapper for anything. Map merges arrive as ``MapMerged`` notes and relabel the
+database, so the merged agents' keyframes stop being inter-map candidates.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.geometry import se3_inv
+from shared.messages import KeyframeEvent, Match
+
+from .database import ConsistencyChecker, KeyframeDatabase
+from .keyframe import KeyframeData, MapPoints
+from .verify import VerifyParams, verify
+from .vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RecognizerParams:
+    consistency: int = 3
+    loop_min_id_gap: int = 30
+    # After a verified match the same agent's stream rests this many keyframes
+    # (ORB-SLAM: no loop detection within 10 keyframes of the last loop).
+    rest_after_match: int = 10
+    neighbourhood_kfs: int = 10
+    max_verify: int = 3  # candidates verified per query kind and keyframe
+    verify: VerifyParams = field(default_factory=VerifyParams)
+
+
+@dataclass
+class _Kf:
+    data: KeyframeData
+    T_m_kf: np.ndarray
+    frame: str  # the map whose frame T_m_kf is in (merges don't rewrite old copies)
+    kf_id: int
+    stamp_ns: int
+
+
+@dataclass
+class QueryTiming:
+    query_s: float = 0.0  # BoW conversion + both database queries + consistency
+    verify_s: float = 0.0
+    verified: int = 0
+    accepted: int = 0
+
+
+class PlaceRecognizer:
+    def __init__(self, voc: Vocabulary, params: RecognizerParams | None = None) -> None:
+        self.voc = voc
+        self.p = params or RecognizerParams()
+        self.db = KeyframeDatabase(voc.n_words)
+        self.kfs: dict[int, _Kf] = {}
+        self.covis: dict[int, list[int]] = {}
+        self.by_agent: dict[str, list[tuple[int, int]]] = {}  # agent -> [(kf id, gid)]
+        self.checkers: dict[tuple[str, str], ConsistencyChecker] = {}
+        self.rest: dict[str, int] = {}  # agent -> keyframes still to rest
+        self.merged_into: dict[str, str] = {}
+        self.last = QueryTiming()
+
+    # --- bookkeeping -------------------------------------------------------------------
+    def resolve(self, map_id: str) -> str:
+        seen = set()
+        while map_id in self.merged_into and map_id not in seen:
+            seen.add(map_id)
+            map_id = self.merged_into[map_id]
+        return map_id
+
+    def on_merged(self, source: str, target: str) -> int:
+        """Map ``source`` is now part of ``target``."""
+        if source == target:
+            return 0
+        self.merged_into[source] = target
+        n = self.db.relabel_map(source, self.resolve(target))
+        for k in self.kfs.values():
+            if k.data.map_id == source:
+                k.data.map_id = self.resolve(target)
+        for key in [k for k in self.checkers if k[1] == "merge"]:
+            self.checkers[key].reset()
+        return n
+
+    def covisible(self, g: int) -> list[int]:
+        return self.covis.get(int(g), [])
+
+    def _checker(self, agent: str, kind: str) -> ConsistencyChecker:
+        key = (agent, kind)
+        if key not in self.checkers:
+            self.checkers[key] = ConsistencyChecker(self.p.consistency)
+        return self.checkers[key]
+
+    def _add_covis(self, g: int, neighbours: np.ndarray) -> None:
+        mine = self.covis.setdefault(g, [])
+        for n in neighbours.tolist():
+            if n == g or n not in self.kfs:
+                continue
+            mine.append(n)
+            # Newest first: the freshest neighbours describe a place best.
+            self.covis.setdefault(n, []).insert(0, g)
+
+    def neighbourhood(self, c: int) -> MapPoints:
+        """Map points of c and its covisible keyframes, in c's camera frame."""
+        kc = self.kfs[c]
+        T_c_m = se3_inv(kc.T_m_kf)
+        mps, pts, desc = [], [], []
+        for g in [c] + self.covisible(c)[: self.p.neighbourhood_kfs]:
+            k = self.kfs.get(g)
+            if k is None or k.frame != kc.frame:
+                continue
+            ok = k.data.has_point
+            if not ok.any():
+                continue
+            T = T_c_m @ k.T_m_kf
+            P = k.data.p_c[ok] @ T[:3, :3].T + T[:3, 3]
+            mps.append(k.data.mp[ok])
+            pts.append(P)
+            desc.append(k.data.descriptors[ok])
+        if not mps:
+            return MapPoints(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 32), np.uint8))
+        mp = np.concatenate(mps)
+        _, first = np.unique(mp, return_index=True)
+        return MapPoints(mp[first], np.concatenate(pts)[first], np.concatenate(desc)[first])
+
+    # --- one keyframe -------------------------------------------------------------------
+    def process(self, ev: KeyframeEvent) -> list[Match]:
+        t0 = time.perf_counter()
+        timing = QueryTiming()
+        map_id = self.resolve(ev.map_id)
+        g = int(ev.gid)
+        kd = KeyframeData(g, map_id, ev.agent, ev.xy, ev.octaves, ev.descriptors, ev.mp, ev.p_c,
+                          ev.fx).compute_bow(self.voc)  # fmt: skip
+        neighbours = [int(n) for n in ev.covis.tolist() if int(n) in self.kfs]
+        resting = self.rest.get(ev.agent, 0) > 0
+        queries = []
+        if not resting and len(self.kfs) > 0:
+            others = [m for m in self.db.maps() if m != map_id]
+            if others:
+                cands = self.db.query(kd.bow, neighbours, self.covisible, query_gid=g,
+                                      exclude_maps=[map_id])  # fmt: skip
+                acc = self._checker(ev.agent, "merge").update([c.gid for c in cands],
+                                                              self.covisible)  # fmt: skip
+                queries.append(acc)
+            recent = [gg for i, gg in self.by_agent.get(ev.agent, [])
+                      if abs(i - int(ev.kf_id)) < self.p.loop_min_id_gap]  # fmt: skip
+            cands = self.db.query(kd.bow, neighbours, self.covisible, query_gid=g,
+                                  exclude=recent, maps=[map_id])  # fmt: skip
+            acc = self._checker(ev.agent, "loop").update([c.gid for c in cands], self.covisible)
+            queries.append(acc)
+        elif resting:
+            self.rest[ev.agent] -= 1
+        # Register after querying, so a keyframe never finds itself.
+        self.kfs[g] = _Kf(kd, ev.T_m_kf.copy(), map_id, int(ev.kf_id), int(ev.stamp_ns))
+        self.db.add(g, map_id, kd.bow)
+        self._add_covis(g, ev.covis)
+        self.by_agent.setdefault(ev.agent, []).append((int(ev.kf_id), g))
+        timing.query_s = time.perf_counter() - t0
+        out: list[Match] = []
+        t1 = time.perf_counter()
+        for acc in queries:
+            for c in acc[: self.p.max_verify]:
+                if c not in self.kfs:
+                    continue
+                timing.verified += 1
+                res = verify(kd, self.kfs[c].data, self.neighbourhood(c), self.p.verify)
+                if not res.accepted:
+                    log.debug("candidate %d for %d rejected: %s", c, g, res.reason)
+                    continue
+                both = (res.mp_q >= 0) & (res.mp_c >= 0)
+                out.append(Match(
+                    map_id, g, self.kfs[c].data.map_id, c, res.S_q_c, res.mp_q[both].copy(),
+                    res.mp_c[both].copy(), int(res.n_inliers),
+                    float(self.db_score(kd, c)), time.time_ns(),
+                ))  # fmt: skip
+                timing.accepted += 1
+                self.rest[ev.agent] = self.p.rest_after_match
+                self._checker(ev.agent, "merge").reset()
+                self._checker(ev.agent, "loop").reset()
+                break
+            if out:
+                break
+        timing.verify_s = time.perf_counter() - t1
+        self.last = timing
+        return out
+
+    def db_score(self, kd: KeyframeData, c: int) -> float:
+        from .vocabulary import bow_score
+
+        return bow_score(kd.bow, self.kfs[c].data.bow)

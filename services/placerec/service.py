@@ -1,0 +1,118 @@
+"""The placerec service: keyframe events in, verified matches out.
+
+Zenoh callbacks only enqueue; one worker recognizes places, keyframe by keyframe in
+arrival order (consistency checks need the order). Map-merge notes go on the same
+queue, so a relabel is never overtaken by a keyframe of the merged map.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+
+from shared import keys
+from shared.geometry import Sim3
+from shared.messages import DecodeError, KeyframeEvent, MapMerged
+from shared.metrics import PROCESSING, REJECTED, UP
+from shared.settings import Settings
+from shared.transport import Bus, Received, open_session
+
+from .metrics import DB_KEYFRAMES, MATCHES_PUBLISHED, QUERY_SECONDS, VERIFIED
+from .recognizer import PlaceRecognizer, RecognizerParams
+from .verify import VerifyParams
+from .vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+SERVICE = "placerec"
+
+
+def params_from(settings: Settings) -> RecognizerParams:
+    p = settings.placerec
+    return RecognizerParams(
+        consistency=p.consistency, loop_min_id_gap=p.loop_min_id_gap,
+        verify=VerifyParams(min_inliers=p.min_inliers, min_total_matches=p.min_matches),
+    )  # fmt: skip
+
+
+class PlacerecService:
+    def __init__(self, settings: Settings, voc: Vocabulary | None = None) -> None:
+        self.settings = settings
+        path = settings.placerec.vocabulary or None
+        self.rec = PlaceRecognizer(voc or Vocabulary.load(path), params_from(settings))
+        self.q: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self.session = None
+        self.bus: Bus | None = None
+        self._thread = threading.Thread(target=self._run, name="placerec", daemon=True)
+
+    def handle(self, key: str, payload: bytes) -> list:
+        """Decode and process one sample (the worker's body; tests call it directly)."""
+        if key.endswith("/merged"):
+            try:
+                m = MapMerged.decode(payload)
+            except DecodeError as e:
+                REJECTED.labels(SERVICE, key, "invalid").inc()
+                log.warning("rejected merge note on %s: %s", key, e)
+                return []
+            n = self.rec.on_merged(m.source, m.target)
+            log.info("map %s merged into %s: %d keyframes relabelled", m.source, m.target, n)
+            return []
+        try:
+            ev = KeyframeEvent.decode(payload)
+            if keys.map_of(key) not in (None, ev.map_id):
+                raise DecodeError(f"map {ev.map_id!r} sent on the key of {keys.map_of(key)!r}")
+        except (DecodeError, ValueError) as e:
+            REJECTED.labels(SERVICE, key, "invalid").inc()
+            log.warning("rejected keyframe event on %s: %s", key, e)
+            return []
+        t0 = time.perf_counter()
+        matches = self.rec.process(ev)
+        t = self.rec.last
+        QUERY_SECONDS.observe(t.query_s)
+        PROCESSING.labels(SERVICE, "keyframe").observe(time.perf_counter() - t0)
+        VERIFIED.labels("accepted").inc(t.accepted)
+        VERIFIED.labels("rejected").inc(t.verified - t.accepted)
+        DB_KEYFRAMES.set(len(self.rec.db))
+        for m in matches:
+            kind = "merge" if m.query_map != m.cand_map else "loop"
+            MATCHES_PUBLISHED.labels(kind).inc()
+            log.info("%s match: kf %d (%s) <-> kf %d (%s), %d inliers, scale %.3f", kind,
+                     m.query_gid, m.query_map, m.cand_gid, m.cand_map, m.inliers,
+                     Sim3.from_matrix(m.S_q_c).s)  # fmt: skip
+            if self.bus is not None:
+                self.bus.put(keys.MATCH, m.encode())
+        return matches
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                item: Received = self.q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self.handle(item.key, item.payload)
+            except Exception:
+                REJECTED.labels(SERVICE, item.key, "internal").inc()
+                log.exception("place recognition failed", extra={"key": item.key})
+
+    def start(self) -> None:
+        self.session = open_session(self.settings.zenoh)
+        self.bus = Bus(self.session, SERVICE, self.settings.inject)
+        self.bus.subscribe(keys.ALL_MAP_KF, q=self.q)
+        self.bus.subscribe(keys.ALL_MAP_MERGED, q=self.q)
+        self._thread.start()
+        UP.labels(SERVICE).set(1)
+        log.info("placerec running: vocabulary of %d words", self.rec.voc.n_words)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10)
+        UP.labels(SERVICE).set(0)
+        if self.bus:
+            self.bus.close()
+        if self.session is not None:
+            self.session.close()
+            self.session = None

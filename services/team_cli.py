@@ -1,0 +1,174 @@
+"""``hivemap run-team`` and ``hivemap eval``: a team of real (VO) agents against the
+whole server stack, and the per-agent and joint ATE of what the server holds."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+from shared.settings import Settings
+
+
+def _sources(args: argparse.Namespace) -> list[tuple[str, str]]:
+    seqs = [s for s in args.agents.split(",") if s]
+    if args.source == "synthetic":
+        q = [f"seed={args.seed}"] + ([f"frames={args.frames}"] if args.frames else [])
+        return [(seq, f"synthetic:{seq}?{'&'.join(q)}") for seq in seqs]
+    if args.source.startswith("euroc:"):
+        dirs = args.source.removeprefix("euroc:").split(",")
+        if len(dirs) != len(seqs):
+            raise SystemExit("hivemap run-team: give one euroc folder per agent")
+        return [(seq, f"euroc:{d}") for seq, d in zip(seqs, dirs, strict=True)]
+    raise SystemExit(f"hivemap run-team: unknown --source {args.source!r}")
+
+
+def _metric(port: int, name: str) -> float:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=2) as r:
+            text = r.read().decode()
+    except OSError:
+        return float("nan")
+    total = 0.0
+    for ln in text.splitlines():
+        if ln.startswith(name) and not ln.startswith("#"):
+            total += float(ln.rsplit(" ", 1)[1])
+    return total
+
+
+def wait_settled(stack, timeout: float, quiet_s: float = 8.0) -> None:
+    """Until every optimization the mapper asked for came back and nothing new was
+    asked for ``quiet_s``."""
+    mp, op = stack.settings.mapper_metrics_port, stack.settings.optimizer_metrics_port
+    deadline = time.monotonic() + timeout
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        req = _metric(mp, "hivemap_optimize_requests_total")
+        done = _metric(mp, "hivemap_corrections_applied_total") + _metric(
+            op, "hivemap_optimizations_superseded_total"
+        )
+        state = (req, done)
+        if state != last:
+            last, since = state, time.monotonic()
+        elif req <= done and time.monotonic() - since >= quiet_s:
+            return
+        time.sleep(1.0)
+
+
+def collect(redis_url: str):
+    from shared.store import Store, connect
+    from shared.trajectory import Trajectory
+
+    store = Store(connect(redis_url))
+    out = {}
+    for a in store.agents():
+        info = store.agent_info(a) or {}
+        _, stamps, poses = store.trajectory(a)
+        if len(stamps):
+            out[a] = (str(info.get("map", "?")), Trajectory(stamps, poses))
+    return out
+
+
+def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
+    from shared.evaluation import evaluate_team, format_report
+    from shared.redis_server import free_port
+    from shared.trajectory import Trajectory, write_tum
+
+    from .launcher import Stack, _run_until_signal
+
+    sources = _sources(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = settings.model_copy(update={
+        "api_port": args.api_port or free_port(), "mapper_metrics_port": free_port(),
+        "placerec_metrics_port": free_port(), "optimizer_metrics_port": free_port()})  # fmt: skip
+    if args.no_feedback:
+        settings = settings.model_copy(update={"mapper": settings.mapper.model_copy(
+            update={"feedback_k": 0})})  # fmt: skip
+    stack = Stack(settings, data_dir=args.data_dir)
+    stack.start(with_api=not args.no_api)
+    t0 = time.monotonic()
+    agents = []
+    try:
+        for i, (seq, src) in enumerate(sources):
+            name = f"agent{i + 1}"
+            argv = ["agent", "--id", name, "--source", src, "--server", stack.zenoh_endpoint,
+                    "--out", str(out)] + (["--realtime"] if args.realtime else [])  # fmt: skip
+            env = {"HIVEMAP_LOG_LEVEL": "WARNING"}
+            if args.no_feedback:
+                env["HIVEMAP_MAPPER__FEEDBACK_K"] = "0"
+            stack.add(f"agent-{name}", argv, env)
+            agents.append((name, seq, stack.procs[-1][1]))
+            print(f"{name}: {src}", flush=True)
+        for name, _, p in agents:
+            p.wait()
+            print(f"{name} finished ({p.returncode}) after {time.monotonic() - t0:.0f} s",
+                  flush=True)  # fmt: skip
+        wait_settled(stack, args.settle_timeout)
+        trajs = collect(stack.settings.redis_url)
+        maps = evaluate_team(trajs)
+        print(format_report(maps))
+        for a, (_, tr) in trajs.items():
+            write_tum(out / f"{a}_server.tum", Trajectory(tr.stamps_ns, tr.poses))
+        (out / "team_eval.json").write_text(json.dumps(_eval_doc(maps), indent=2))
+        print(f"written {out / 'team_eval.json'}")
+        if args.keep:
+            print("stack still up; Ctrl-C stops it", flush=True)
+            return _run_until_signal(stack)
+    finally:
+        if not args.keep:
+            stack.stop()
+    return 0
+
+
+def _eval_doc(maps) -> dict:
+    return {
+        "maps": [
+            {"map": m.map_id, "agents": m.agents, "keyframes": m.keyframes,
+             "joint_ate_m": m.joint_ate_m, "joint_ate_pct": m.joint_ate_pct,
+             "path_m": m.path_m, "scale": m.scale,
+             "per_agent": [{"agent": e.agent, "seq": e.seq, "keyframes": e.keyframes,
+                            "ate_m": e.ate_m, "ate_pct": e.ate_pct, "path_m": e.path_m}
+                           for e in m.agents_eval]}
+            for m in maps
+        ]
+    }  # fmt: skip
+
+
+def cmd_eval(args: argparse.Namespace, settings: Settings) -> int:
+    from shared.evaluation import evaluate_team, format_report
+
+    trajs = collect(args.redis_url or settings.redis_url)
+    if not trajs:
+        print("hivemap eval: no agent trajectories in this Redis", file=sys.stderr)
+        return 2
+    maps = evaluate_team(trajs)
+    print(format_report(maps))
+    if args.json:
+        Path(args.json).write_text(json.dumps(_eval_doc(maps), indent=2))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run-team", help="the stack plus one VO agent per sequence; joint ATE")
+    p.add_argument("--agents", default="MH01,MH02,MH03", help="EuRoC MH sequences, one each")
+    p.add_argument("--source", default="synthetic", help="synthetic | euroc:DIR1,DIR2,...")
+    p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    p.add_argument("--frames", default="", help="A:B slice of every sequence")
+    p.add_argument("--realtime", action="store_true", help="pace frames by their timestamps")
+    p.add_argument("--no-feedback", action="store_true", help="server sends agents no map")
+    p.add_argument("--out", default="team_out")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--api-port", type=int, default=0)
+    p.add_argument("--no-api", action="store_true")
+    p.add_argument("--settle-timeout", type=float, default=120.0)
+    p.add_argument("--keep", action="store_true", help="keep the stack up afterwards")
+    p.set_defaults(func=cmd_run_team)
+
+    p = sub.add_parser("eval", help="per-agent and joint ATE of the server's trajectories")
+    p.add_argument("--redis-url", default="", help="overrides HIVEMAP_REDIS_URL")
+    p.add_argument("--json", default="", help="also write the report here")
+    p.set_defaults(func=cmd_eval)

@@ -1,0 +1,216 @@
+"""The mapper's collaboration path (no transport; real redis-server): a verified match
+between two agents' maps fuses them into one frame, loop edges and corrections keep
+the map consistent, and a restart rebuilds the merged map exactly from Redis."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.agent.comm import CommModule
+from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.mapper.merge import fuse_matched, move_map
+from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest, gid
+from services.mapper.service import MapperService
+from services.optimizer.service import OptimizerService, correction_msg
+from shared.geometry import Sim3, exp_so3, se3_inv
+from shared.messages import Ack, Match, OptimizeRequest
+from shared.settings import Settings
+from shared.store import Store, connect
+from shared.trajectory import Trajectory, load_euroc_gt
+
+
+@pytest.fixture(scope="module")
+def world() -> LandmarkWorld:
+    return LandmarkWorld(0)
+
+
+def _kf(g: int, mp: list[int], T: np.ndarray) -> ServerKeyframe:
+    n = len(mp)
+    return ServerKeyframe(g, "A", g, g, T, T, np.zeros((n, 2), np.float32), np.zeros((n, 2)),
+                          np.zeros(n, np.uint8), np.zeros((n, 32), np.uint8),
+                          np.array(mp, np.int64))  # fmt: skip
+
+
+def test_move_map_carries_poses_points_and_graph_through_a_similarity():
+    rng = np.random.default_rng(0)
+    src, dst = ServerMap("b"), ServerMap("a")
+    for g in range(100, 150):
+        src.add_map_point(ServerMapPoint(g, rng.normal(size=3), np.zeros(32, np.uint8), 0))
+    T0, T1 = np.eye(4), np.eye(4)
+    T1[:3, 3] = [1.0, 0.0, 0.0]
+    src.add_keyframe(_kf(0, list(range(100, 140)), T0))
+    src.add_keyframe(_kf(1, list(range(110, 150)), T1))
+    before = {g: p.pos.copy() for g, p in src.mps.items()}
+    S = Sim3(exp_so3(np.array([0.1, -0.2, 0.3])), np.array([5.0, 1.0, -2.0]), 2.5)
+    res = move_map(dst, src, S)
+    assert sorted(res.moved_kfs) == [0, 1] and not src.kfs and not src.mps
+    for g, p in before.items():
+        np.testing.assert_allclose(dst.mps[g].pos, S.apply(p[None])[0], atol=1e-12)
+    # Poses stay rigid; the baseline between them scales with the map.
+    np.testing.assert_allclose(np.linalg.norm(dst.kfs[1].T_m_kf[:3, 3] - dst.kfs[0].T_m_kf[:3, 3]),
+                               2.5, atol=1e-12)  # fmt: skip
+    assert dst.covis[0][1] == 30 and dst.check_invariants() == []
+    fres = fuse_matched(dst, np.array([100, 101]), np.array([145, 101]))
+    assert len(fres.aliases) == 1 and 145 not in dst.mps or 100 not in dst.mps
+    assert dst.check_invariants() == []
+
+
+def _feed(svc: MapperService, agent: str, sim: SimAgent) -> None:
+    comm = CommModule(agent, rate_hz=1e9)
+    t = 0.0
+    while not sim.done:
+        _, _, kf = sim.step()
+        if kf is None:
+            continue
+        comm.add_keyframe(kf.kf)
+        comm.add_map_points(kf.new_mps)
+        data = comm.next_message(t, 0, kf.kf.id).encode()
+        ack = svc.process_kf_bytes(f"hivemap/agent/{agent}/up/kf", data, 0)
+        comm.on_ack(Ack(agent, ack.map_id, ack.kf_ids, ack.mp_ids, 0, 0), t)
+        t += 1.0
+
+
+def _traj(svc: MapperService, agent: str) -> Trajectory:
+    h = svc.handlers[agent]
+    kfs = sorted((k for k in h.smap.kfs.values() if k.agent == agent), key=lambda k: k.id)
+    return Trajectory(np.array([k.stamp_ns for k in kfs]), np.stack([k.T_m_kf for k in kfs]))
+
+
+def _match_from_truth(svc, sims, gts, qa: str, ca: str) -> Match:
+    """What place recognition would publish for the closest pair of keyframes of two
+    agents: the true S_q_c (in their local-map scales) and the landmarks both see."""
+    tq, tc = _traj(svc, qa), _traj(svc, ca)
+    gq, gc = gts[qa], gts[ca]
+    Pq = gq.poses[np.searchsorted(gq.stamps_ns, tq.stamps_ns)]
+    Pc = gc.poses[np.searchsorted(gc.stamps_ns, tc.stamps_ns)]
+    d = np.linalg.norm(Pq[:, None, :3, 3] - Pc[None, :, :3, 3], axis=2)
+    iq, ic = np.unravel_index(np.argmin(d), d.shape)
+    hq, hc = svc.handlers[qa], svc.handlers[ca]
+    kq = hq.smap.kfs[hq.kf_gid(_kf_id(svc, qa, iq))]
+    kc = hc.smap.kfs[hc.kf_gid(_kf_id(svc, ca, ic))]
+    T_q_c = se3_inv(Pq[iq]) @ Pc[ic]  # metres
+    sq, sc = sims[qa].state.scale, sims[ca].state.scale
+    S = Sim3(T_q_c[:3, :3], T_q_c[:3, 3] * sq, sq / sc)
+    inv_q = {m: lm for lm, m in sims[qa].lm_to_mp.items()}
+    inv_c = {m: lm for lm, m in sims[ca].lm_to_mp.items()}
+    lm_q = {inv_q[int(g) & ((1 << 40) - 1)]: int(g) for g in kq.mp[kq.mp >= 0]}
+    lm_c = {inv_c[int(g) & ((1 << 40) - 1)]: int(g) for g in kc.mp[kc.mp >= 0]}
+    both = sorted(set(lm_q) & set(lm_c))
+    assert len(both) >= 30, "the chosen keyframes should see a common place"
+    return Match(hq.map_id, kq.gid, hc.map_id, kc.gid, S.matrix(),
+                 np.array([lm_q[x] for x in both], np.int64),
+                 np.array([lm_c[x] for x in both], np.int64), len(both), 1.0, 0)  # fmt: skip
+
+
+def _kf_id(svc, agent: str, i: int) -> int:
+    h = svc.handlers[agent]
+    return sorted(k.id for k in h.smap.kfs.values() if k.agent == agent)[i]
+
+
+def _joint_rigid_error(svc, gts, agents) -> float:
+    """Largest position error of every agent's keyframes in their common map frame,
+    after one similarity alignment to ground truth."""
+    from shared.geometry import umeyama
+
+    P, G = [], []
+    for a in agents:
+        tr = _traj(svc, a)
+        P.append(tr.positions)
+        G.append(gts[a].positions[np.searchsorted(gts[a].stamps_ns, tr.stamps_ns)])
+    P, G = np.concatenate(P), np.concatenate(G)
+    S = umeyama(P, G)
+    return float(np.linalg.norm(S.apply(P) - G, axis=1).max())
+
+
+def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, world):
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    gts, sims = {}, {}
+    for agent, seq, (a, b), scale in (("A", "MH01", (0, 700), 1.0), ("B", "MH02", (0, 700), 2.0)):
+        gt = load_euroc_gt(seq)
+        gts[agent] = Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
+        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel.zero())
+        sims[agent].state.scale = scale  # B's monocular map has twice the metric scale
+        _feed(svc, agent, sims[agent])
+    assert svc.handlers["A"].map_id != svc.handlers["B"].map_id
+    m = _match_from_truth(svc, sims, gts, "B", "A")
+    assert svc.collab.on_match(m) == "merge"
+    assert svc.handlers["A"].smap is svc.handlers["B"].smap
+    smap = svc.handlers["A"].smap
+    assert len(svc.maps) == 1 and smap.check_invariants() == []
+    assert sum(1 for _ in smap.kfs) == sum(len(_traj(svc, a)) for a in "AB")
+    # Zero-noise agents: one similarity aligns both trajectories to ground truth exactly.
+    assert _joint_rigid_error(svc, gts, "AB") < 1e-6
+    # B's local units are half a metre: per local unit it moves half as far in the map.
+    ratio = svc.handlers["B"].S_m_l.s / svc.handlers["A"].S_m_l.s
+    np.testing.assert_allclose(ratio, 0.5, rtol=1e-9)
+    # The same place again: already tied by fused points, nothing more to do.
+    assert svc.collab.on_match(_match_from_truth(svc, sims, gts, "B", "A")) is None
+
+    # A restart rebuilds the merged map, handlers and loop edges from Redis alone.
+    again = MapperService(settings)
+    again.load()
+    assert list(again.maps) == [smap.map_id]
+    assert digest(again.maps[smap.map_id]) == digest(smap)
+    assert again.handlers["B"].map_id == smap.map_id
+    again_ratio = again.handlers["B"].S_m_l.s / again.handlers["A"].S_m_l.s
+    np.testing.assert_allclose(again_ratio, 0.5, rtol=1e-9)
+    assert [(lc.q, lc.c) for lc in again.collab.loops[smap.map_id]] == [(m.query_gid, m.cand_gid)]
+    assert m.cand_gid in again.maps[smap.map_id].kfs[m.query_gid].loop_edges
+    info = Store(connect(redis_url)).map_info(smap.map_id)
+    assert set(info["agents"]) == {"A", "B"} and info["n_kf"] == len(smap.kfs)
+    assert Store(connect(redis_url)).maps() == [smap.map_id]
+
+    # After the merge B keeps registering into the common map, at the common scale.
+    gt = load_euroc_gt("MH02")
+    more = Trajectory(gt.stamps_ns[700:900], gt.poses[700:900])
+    gts["B"] = Trajectory(gt.stamps_ns[0:900], gt.poses[0:900])
+    sims["B"].traj = Trajectory(np.concatenate([sims["B"].traj.stamps_ns, more.stamps_ns]),
+                                np.concatenate([sims["B"].traj.poses, more.poses]))  # fmt: skip
+    _feed(svc, "B", sims["B"])
+    assert _joint_rigid_error(svc, gts, "AB") < 1e-6
+
+
+def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
+    """Merge two noisy agents, ask for an optimization, run it, apply the correction:
+    invariants hold, Redis follows, and the joint error does not grow."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    gts, sims = {}, {}
+    for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
+        gt = load_euroc_gt(seq)
+        gts[agent] = Trajectory(gt.stamps_ns[0:700], gt.poses[0:700])
+        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel(), seed=10 + i)
+        _feed(svc, agent, sims[agent])
+    assert svc.collab.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    before = _joint_rigid_error(svc, gts, "AB")
+    req = svc.collab.request(map_id, "merge")
+    assert isinstance(req, OptimizeRequest) and len(req.loops) == 1
+    req = OptimizeRequest.decode(req.encode())  # what travels on the wire
+    opt = OptimizerService(settings)
+    corr = opt.optimize(req)
+    # A keyframe that arrived during the optimization is carried along (CCM-SLAM Fig. 4).
+    gt = load_euroc_gt("MH01")
+    more = Trajectory(gt.stamps_ns[700:760], gt.poses[700:760])
+    gts["A"] = Trajectory(gt.stamps_ns[0:760], gt.poses[0:760])
+    sims["A"].traj = Trajectory(np.concatenate([sims["A"].traj.stamps_ns, more.stamps_ns]),
+                                np.concatenate([sims["A"].traj.poses, more.poses]))  # fmt: skip
+    _feed(svc, "A", sims["A"])
+    assert svc.collab.on_correction(correction_msg(corr, 0)) is True
+    smap = svc.maps[map_id]
+    assert smap.check_invariants() == []
+    after = _joint_rigid_error(svc, gts, "AB")
+    assert after <= before * 1.05, (before, after)
+    again = MapperService(settings)
+    again.load()
+    assert digest(again.maps[map_id]) == digest(smap)
+
+
+def test_unknown_keyframes_in_a_match_are_rejected(redis_url):
+    svc = MapperService(Settings(redis_url=redis_url))
+    m = Match("m1", gid(1, 5), "m2", gid(2, 7), np.eye(4), np.zeros(0, np.int64),
+              np.zeros(0, np.int64), 0, 0.0, 0)  # fmt: skip
+    assert svc.collab.on_match(m) is None
+    assert svc.collab.on_match_bytes("hivemap/match", b"\x93garbage") is None
