@@ -48,6 +48,29 @@ def evo_ate(est: Path, ref: Path) -> float | None:
     return float(ape.get_statistic(metrics.StatisticsType.rmse))
 
 
+def run_alone(seq: str, frames: str) -> dict:
+    """The agent with no server at all (``--no-server``): on-board VO only."""
+    out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-alone-{seq}-"))
+    agent = f"vo-{seq}"
+    src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+    argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--no-server",
+                             "--out", str(out)]  # fmt: skip
+    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
+    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
+    st = json.loads((out / f"{agent}_stats.json").read_text())
+    gt = read_tum(out / f"{agent}_gt.tum")
+    online = read_tum(out / f"{agent}_online.tum")
+    a_online = ate(online, gt)
+    return {
+        "seq": seq, "server": False, "frames": st["frames"], "path_m": a_online.path_length,
+        "ate_online_m": a_online.rmse, "ate_online_pct": a_online.percent_of_path,
+        "ate_online_evo_m": evo_ate(out / f"{agent}_online.tum", out / f"{agent}_gt.tum"),
+        "longest_lost_s": st["longest_lost_s"],
+        "track_ms_median": st["track_ms_median"], "track_ms_p95": st["track_ms_p95"],
+        "map_ms_per_kf": st["map_ms_per_kf_median"], "keyframes": st["keyframes"],
+    }  # fmt: skip
+
+
 def run(seq: str, frames: str) -> dict:
     settings = Settings(
         api_port=free_port(),
@@ -100,12 +123,20 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seqs", default="MH01,MH02,MH03")
     ap.add_argument("--frames", default="")
+    ap.add_argument("--no-server", action="store_true", help="the agent alone (issue item 1-2)")
     args = ap.parse_args()
     rows = []
     for seq in args.seqs.split(","):
-        rows.append(run(seq, args.frames))
+        rows.append((run_alone if args.no_server else run)(seq, args.frames))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    path = write_report("vo" + ("_partial" if args.frames else ""), {"rows": rows})
+    name = "vo" + ("_alone" if args.no_server else "") + ("_partial" if args.frames else "")
+    path = write_report(name, {"rows": rows})
+    if args.no_server:
+        print(table(rows, ["seq", "frames", "path_m", "ate_online_m", "ate_online_pct",
+                           "ate_online_evo_m", "longest_lost_s", "track_ms_median",
+                           "track_ms_p95", "map_ms_per_kf", "keyframes"]))  # fmt: skip
+        print(f"written {path}")
+        return 0
     print(table(rows, ["seq", "frames", "path_m", "ate_online_m", "ate_online_pct",
                        "ate_online_evo_m", "longest_lost_s", "track_ms_median", "track_ms_p95",
                        "map_ms_per_kf", "bytes_per_s"]))  # fmt: skip
