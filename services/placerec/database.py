@@ -1,0 +1,339 @@
+"""Inverted-file keyframe database over all maps, and loop-candidate consistency.
+
+One database holds the BoW vectors of every keyframe of every server map (CCM-SLAM
+§4.7); a query can be restricted to some maps or exclude some (intra-map place
+recognition vs. map matching). Scoring and candidate selection follow ORB-SLAM's
+``KeyFrameDatabase::DetectLoopCandidates``:
+
+1. keyframes sharing words with the query, except the excluded ones (the query's
+   covisible neighbours); keep those with more than 0.8x the most shared words;
+2. their DBoW2 L1 score; drop those below ``min_score``, which defaults to the
+   lowest score between the query and its own covisible neighbours;
+3. accumulate each survivor's score with those of its best covisible neighbours
+   that also passed step 1; the group is represented by its best keyframe;
+4. return the groups scoring above 0.75x the best group.
+
+Inverted lists are ``array.array`` buffers: appending is O(1) and numpy reads them
+without copying (``np.frombuffer``), so a query is a handful of concatenations and
+one ``np.bincount`` whatever the number of keyframes. Removal marks a slot dead;
+lists are compacted once dead entries outnumber live ones.
+"""
+
+from __future__ import annotations
+
+import logging
+from array import array
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .vocabulary import BowVector, bow_score
+
+log = logging.getLogger(__name__)
+
+Covisibility = Callable[[int], Sequence[int]] | Mapping[int, Sequence[int]]
+
+
+def _getter(covisible: Covisibility) -> Callable[[int], Sequence[int]]:
+    if isinstance(covisible, Mapping):
+        return lambda g: covisible.get(g, ())
+    return covisible
+
+
+@dataclass(frozen=True)
+class Candidate:
+    gid: int  # best keyframe of the group
+    map_id: str
+    score: float  # its own BoW score against the query
+    group_score: float  # accumulated over its covisibility group
+    common_words: int
+
+
+@dataclass(frozen=True)
+class QueryParams:
+    min_common_ratio: float = 0.8
+    group_size: int = 10  # best covisible neighbours accumulated per candidate
+    retain_ratio: float = 0.75
+
+
+class KeyframeDatabase:
+    def __init__(self, n_words: int) -> None:
+        self.n_words = int(n_words)
+        self._inv_slot = [array("i") for _ in range(self.n_words)]
+        self._inv_val = [array("d") for _ in range(self.n_words)]
+        self._slot_of: dict[int, int] = {}
+        self._gid = np.zeros(0, np.int64)
+        self._map = np.zeros(0, np.int32)
+        self._alive = np.zeros(0, bool)
+        self._bows: list[BowVector | None] = []
+        self._map_index: dict[str, int] = {}
+        self._map_names: list[str] = []
+        self._map_slots: dict[int, set[int]] = {}
+        self._live_entries = 0
+        self._dead_entries = 0
+
+    # -- bookkeeping -----------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._slot_of)
+
+    def __contains__(self, gid: int) -> bool:
+        return int(gid) in self._slot_of
+
+    def map_of(self, gid: int) -> str:
+        return self._map_names[self._map[self._slot_of[int(gid)]]]
+
+    def bow_of(self, gid: int) -> BowVector:
+        bow = self._bows[self._slot_of[int(gid)]]
+        assert bow is not None
+        return bow
+
+    def keyframes_of(self, map_id: str) -> list[int]:
+        mi = self._map_index.get(map_id)
+        if mi is None:
+            return []
+        return sorted(int(self._gid[s]) for s in self._map_slots[mi])
+
+    def maps(self) -> list[str]:
+        return [m for m, i in self._map_index.items() if self._map_slots[i]]
+
+    def _map_idx(self, map_id: str) -> int:
+        mi = self._map_index.get(map_id)
+        if mi is None:
+            mi = len(self._map_names)
+            self._map_index[map_id] = mi
+            self._map_names.append(map_id)
+            self._map_slots[mi] = set()
+        return mi
+
+    def add(self, gid: int, map_id: str, bow: BowVector) -> None:
+        """Insert a keyframe (re-adding a gid replaces its entry)."""
+        gid = int(gid)
+        if gid in self._slot_of:
+            self.remove(gid)
+        slot = len(self._bows)
+        if slot >= len(self._gid):
+            cap = max(64, 2 * len(self._gid))
+            self._gid = np.resize(self._gid, cap)
+            self._map = np.resize(self._map, cap)
+            alive = np.zeros(cap, bool)
+            alive[: len(self._alive)] = self._alive
+            self._alive = alive
+        mi = self._map_idx(map_id)
+        self._gid[slot] = gid
+        self._map[slot] = mi
+        self._alive[slot] = True
+        self._bows.append(bow)
+        self._slot_of[gid] = slot
+        self._map_slots[mi].add(slot)
+        for w, v in zip(bow.words.tolist(), bow.weights.tolist(), strict=True):
+            self._inv_slot[w].append(slot)
+            self._inv_val[w].append(v)
+        self._live_entries += len(bow)
+
+    def remove(self, gid: int) -> bool:
+        slot = self._slot_of.pop(int(gid), None)
+        if slot is None:
+            return False
+        self._alive[slot] = False
+        self._map_slots[int(self._map[slot])].discard(slot)
+        n = len(self._bows[slot] or ())
+        self._bows[slot] = None
+        self._live_entries -= n
+        self._dead_entries += n
+        if self._dead_entries > max(self._live_entries, 10000):
+            self._compact()
+        return True
+
+    def relabel_map(self, old: str, new: str) -> int:
+        """All keyframes of map ``old`` now belong to ``new`` (map fusion); O(kfs of old)."""
+        if old == new or old not in self._map_index:
+            return 0
+        mo, mn = self._map_index[old], self._map_idx(new)
+        slots = self._map_slots[mo]
+        if slots:
+            idx = np.fromiter(slots, np.int64, len(slots))
+            self._map[idx] = mn
+        self._map_slots[mn] |= slots
+        self._map_slots[mo] = set()
+        return len(slots)
+
+    def _compact(self) -> None:
+        """Drop dead slots from every inverted list (amortized by the doubling rule)."""
+        alive = self._alive
+        for w in range(self.n_words):
+            s = self._inv_slot[w]
+            if not s:
+                continue
+            sa = np.frombuffer(s, np.int32)
+            keep = alive[sa]
+            if keep.all():
+                continue
+            self._inv_slot[w] = array("i", sa[keep].tobytes())
+            vals = np.frombuffer(self._inv_val[w], np.float64)[keep]
+            self._inv_val[w] = array("d", vals.tobytes())
+        self._dead_entries = 0
+
+    # -- queries -----------------------------------------------------------------------
+    def score_all(
+        self,
+        bow: BowVector,
+        exclude: Iterable[int] = (),
+        maps: Iterable[str] | None = None,
+        exclude_maps: Iterable[str] = (),
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(gids, L1 scores, shared word counts) of every allowed keyframe sharing a word."""
+        words = bow.words.tolist()
+        lists = [self._inv_slot[w] for w in words]
+        lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+        nz = np.nonzero(lens)[0].tolist()
+        if not nz:
+            e = np.zeros(0)
+            return e.astype(np.int64), e, e.astype(np.int64)
+        slots = np.concatenate([np.frombuffer(lists[i], np.int32) for i in nz])
+        vals = np.concatenate([np.frombuffer(self._inv_val[words[i]], np.float64) for i in nz])
+        q = np.repeat(bow.weights[nz], lens[nz])
+        contrib = q + vals - np.abs(q - vals)
+        n = len(self._bows)
+        ok = self._allowed(n, exclude, maps, exclude_maps)
+        acc = np.bincount(slots, weights=contrib, minlength=n)
+        common = np.bincount(slots, minlength=n)
+        sel = np.nonzero(ok & (common > 0))[0]
+        return self._gid[sel].copy(), 0.5 * acc[sel], common[sel]
+
+    def _allowed(
+        self,
+        n: int,
+        exclude: Iterable[int],
+        maps: Iterable[str] | None,
+        exclude_maps: Iterable[str],
+    ) -> np.ndarray:
+        ok = self._alive[:n].copy()
+        if maps is not None:
+            want = [self._map_index[m] for m in maps if m in self._map_index]
+            ok &= np.isin(self._map[:n], want)
+        bad = [self._map_index[m] for m in exclude_maps if m in self._map_index]
+        if bad:
+            ok &= ~np.isin(self._map[:n], bad)
+        ex = [self._slot_of[g] for g in map(int, exclude) if g in self._slot_of]
+        if ex:
+            ok[ex] = False
+        return ok
+
+    def min_neighbour_score(self, bow: BowVector, neighbours: Iterable[int]) -> float:
+        """ORB-SLAM's minScore: the lowest score between the query and its covisible kfs."""
+        scores = [bow_score(bow, self.bow_of(g)) for g in neighbours if int(g) in self._slot_of]
+        return min(scores) if scores else 0.0
+
+    def query(
+        self,
+        bow: BowVector,
+        neighbours: Iterable[int],
+        covisible: Covisibility,
+        *,
+        query_gid: int | None = None,
+        exclude: Iterable[int] = (),
+        maps: Iterable[str] | None = None,
+        exclude_maps: Iterable[str] = (),
+        min_score: float | None = None,
+        params: QueryParams | None = None,
+    ) -> list[Candidate]:
+        """Loop / map-matching candidates for a query keyframe, best group first.
+
+        ``neighbours``: the query's covisible keyframes (excluded, and they set the
+        minimum score unless ``min_score`` is given). ``covisible(g)``: keyframe g's
+        covisible keyframes, best first (only the first ``group_size`` are used).
+        """
+        p = params or QueryParams()
+        neighbours = [int(g) for g in neighbours]
+        if min_score is None:
+            min_score = self.min_neighbour_score(bow, neighbours)
+        excl = set(neighbours) | {int(g) for g in exclude}
+        if query_gid is not None:
+            excl.add(int(query_gid))
+        gids, scores, common = self.score_all(bow, excl, maps, exclude_maps)
+        if len(gids) == 0:
+            return []
+        min_common = p.min_common_ratio * common.max()
+        eligible = common > min_common
+        gids, scores, common = gids[eligible], scores[eligible], common[eligible]
+        score_of = dict(zip(gids.tolist(), scores.tolist(), strict=True))
+        cand = np.nonzero(scores >= min_score)[0]
+        if len(cand) == 0:
+            return []
+        get = _getter(covisible)
+        groups: dict[int, tuple[float, float, int]] = {}
+        for i in cand.tolist():
+            g = int(gids[i])
+            best_g, best_s = g, float(scores[i])
+            acc = best_s
+            for nb in list(get(g))[: p.group_size]:
+                s = score_of.get(int(nb))
+                if s is None:
+                    continue
+                acc += s
+                if s > best_s:
+                    best_g, best_s = int(nb), s
+            # Several candidates can elect the same best keyframe; keep its best group.
+            if best_g not in groups or groups[best_g][0] < acc:
+                groups[best_g] = (acc, best_s, 0)
+        best_acc = max(v[0] for v in groups.values())
+        keep = p.retain_ratio * best_acc
+        common_of = dict(zip(gids.tolist(), common.tolist(), strict=True))
+        out = [
+            Candidate(g, self.map_of(g), s, acc, int(common_of[g]))
+            for g, (acc, s, _) in groups.items()
+            if acc > keep or acc == best_acc
+        ]
+        out.sort(key=lambda c: -c.group_score)
+        return out
+
+
+class ConsistencyChecker:
+    """ORB-SLAM ``DetectLoop`` temporal consistency for one stream of queries (one
+    agent or one map; the service keeps one checker per stream).
+
+    A candidate's group is the candidate plus its covisible keyframes. Two groups
+    are consistent when they share a keyframe. A candidate is accepted once its
+    group continues a chain of consistent groups found by ``min_consecutive``
+    consecutive queries (the query that first saw it counts as 1). A query with no
+    candidate breaks every chain.
+    """
+
+    def __init__(self, min_consecutive: int = 3) -> None:
+        self.min_consecutive = int(min_consecutive)
+        self._groups: list[tuple[frozenset[int], int]] = []
+
+    def reset(self) -> None:
+        self._groups = []
+
+    @property
+    def groups(self) -> list[tuple[frozenset[int], int]]:
+        return list(self._groups)
+
+    def update(self, candidates: Iterable[int], covisible: Covisibility) -> list[int]:
+        """Feed one query's candidate gids; returns those consistent enough."""
+        get = _getter(covisible)
+        current: list[tuple[frozenset[int], int]] = []
+        used = [False] * len(self._groups)
+        accepted: list[int] = []
+        for c in candidates:
+            c = int(c)
+            group = frozenset([c, *map(int, get(c))])
+            enough = False
+            continued = False
+            for i, (prev, n) in enumerate(self._groups):
+                if group.isdisjoint(prev):
+                    continue
+                continued = True
+                count = n + 1
+                if not used[i]:
+                    current.append((group, count))
+                    used[i] = True
+                if count >= self.min_consecutive and not enough:
+                    accepted.append(c)
+                    enough = True
+            if not continued:
+                current.append((group, 1))
+        self._groups = current
+        return accepted
