@@ -86,9 +86,12 @@ def _hivemap_exe() -> list[str]:
 class Stack:
     """Starts the plan's processes and stops them all, in reverse order."""
 
-    def __init__(self, settings: Settings, data_dir: str | None = None) -> None:
+    def __init__(
+        self, settings: Settings, data_dir: str | None = None, env: dict[str, str] | None = None
+    ) -> None:
         self.settings = settings
         self.data_dir = data_dir
+        self.env = dict(env or {})  # extra HIVEMAP_* variables for every service
         self.redis: RedisServer | None = None
         self.procs: list[tuple[str, subprocess.Popen]] = []
 
@@ -106,7 +109,7 @@ class Stack:
             if spec.name == "redis" or (spec.name == "api" and not with_api):
                 continue
             argv = _hivemap_exe() + spec.argv[1:]
-            env = {**os.environ, **spec.env}
+            env = {**os.environ, **self.env, **spec.env}
             proc = subprocess.Popen(argv, env=env, start_new_session=True)
             self.procs.append((spec.name, proc))
             if spec.name == "router":

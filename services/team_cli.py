@@ -13,16 +13,26 @@ from pathlib import Path
 from shared.settings import Settings
 
 
-def _sources(args: argparse.Namespace) -> list[tuple[str, str]]:
+def _sources(args: argparse.Namespace) -> list[tuple[str, str, str]]:
+    """(agent name, sequence, source spec) per agent."""
     seqs = [s for s in args.agents.split(",") if s]
     if args.source == "synthetic":
-        q = [f"seed={args.seed}"] + ([f"frames={args.frames}"] if args.frames else [])
-        return [(seq, f"synthetic:{seq}?{'&'.join(q)}") for seq in seqs]
+        seeds = [int(x) for x in str(args.seed).split(",")]
+        if len(seeds) == 1:
+            seeds *= len(seqs)
+        if len(seeds) != len(seqs):
+            raise SystemExit("hivemap run-team: give one seed, or one per agent")
+        out = []
+        for i, (seq, seed) in enumerate(zip(seqs, seeds, strict=True)):
+            q = [f"seed={seed}"] + ([f"frames={args.frames}"] if args.frames else [])
+            out.append((f"agent{i + 1}", seq, f"synthetic:{seq}?{'&'.join(q)}"))
+        return out
     if args.source.startswith("euroc:"):
         dirs = args.source.removeprefix("euroc:").split(",")
         if len(dirs) != len(seqs):
             raise SystemExit("hivemap run-team: give one euroc folder per agent")
-        return [(seq, f"euroc:{d}") for seq, d in zip(seqs, dirs, strict=True)]
+        return [(f"agent{i + 1}", seq, f"euroc:{d}")
+                for i, (seq, d) in enumerate(zip(seqs, dirs, strict=True))]  # fmt: skip
     raise SystemExit(f"hivemap run-team: unknown --source {args.source!r}")
 
 
@@ -72,55 +82,85 @@ def collect(redis_url: str):
     return out
 
 
-def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
+def run_team(
+    settings: Settings,
+    sources: list[tuple[str, str, str]],
+    out: Path,
+    *,
+    realtime: bool = False,
+    feedback: bool = True,
+    with_api: bool = False,
+    data_dir: str | None = None,
+    settle_timeout: float = 120.0,
+    on_stack=None,
+    keep: bool = False,
+) -> dict:
+    """The whole stack plus one ``hivemap agent`` per source; waits for the agents and
+    for the optimizer to settle, then evaluates. Returns the evaluation, each agent's
+    stats and the stack (stopped unless ``keep``)."""
     from shared.evaluation import evaluate_team, format_report
     from shared.redis_server import free_port
     from shared.trajectory import Trajectory, write_tum
 
-    from .launcher import Stack, _run_until_signal
+    from .launcher import Stack
 
-    sources = _sources(args)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = settings.model_copy(update={
-        "api_port": args.api_port or free_port(), "mapper_metrics_port": free_port(),
-        "placerec_metrics_port": free_port(), "optimizer_metrics_port": free_port()})  # fmt: skip
-    if args.no_feedback:
-        settings = settings.model_copy(update={"mapper": settings.mapper.model_copy(
-            update={"feedback_k": 0})})  # fmt: skip
-    stack = Stack(settings, data_dir=args.data_dir)
-    stack.start(with_api=not args.no_api)
+        "api_port": settings.api_port if with_api else free_port(),
+        "mapper_metrics_port": free_port(), "placerec_metrics_port": free_port(),
+        "optimizer_metrics_port": free_port()})  # fmt: skip
+    # Without feedback the mapper sends agents no map chunks (CCM-SLAM Table 7's baseline).
+    env = {} if feedback else {"HIVEMAP_MAPPER__FEEDBACK_K": "0"}
+    stack = Stack(settings, data_dir=data_dir, env=env)
+    stack.start(with_api=with_api)
     t0 = time.monotonic()
-    agents = []
+    procs = []
     try:
-        for i, (seq, src) in enumerate(sources):
-            name = f"agent{i + 1}"
+        if on_stack is not None:
+            on_stack(stack)
+        for name, _, src in sources:
             argv = ["agent", "--id", name, "--source", src, "--server", stack.zenoh_endpoint,
-                    "--out", str(out)] + (["--realtime"] if args.realtime else [])  # fmt: skip
-            env = {"HIVEMAP_LOG_LEVEL": "WARNING"}
-            if args.no_feedback:
-                env["HIVEMAP_MAPPER__FEEDBACK_K"] = "0"
-            stack.add(f"agent-{name}", argv, env)
-            agents.append((name, seq, stack.procs[-1][1]))
+                    "--out", str(out)] + (["--realtime"] if realtime else [])  # fmt: skip
+            stack.add(f"agent-{name}", argv, {"HIVEMAP_LOG_LEVEL": "WARNING", **env})
+            procs.append((name, stack.procs[-1][1]))
             print(f"{name}: {src}", flush=True)
-        for name, _, p in agents:
+        for name, p in procs:
             p.wait()
             print(f"{name} finished ({p.returncode}) after {time.monotonic() - t0:.0f} s",
                   flush=True)  # fmt: skip
-        wait_settled(stack, args.settle_timeout)
+        wait_settled(stack, settle_timeout)
         trajs = collect(stack.settings.redis_url)
         maps = evaluate_team(trajs)
-        print(format_report(maps))
+        print(format_report(maps), flush=True)
         for a, (_, tr) in trajs.items():
             write_tum(out / f"{a}_server.tum", Trajectory(tr.stamps_ns, tr.poses))
-        (out / "team_eval.json").write_text(json.dumps(_eval_doc(maps), indent=2))
+        doc = _eval_doc(maps)
+        doc["seconds"] = time.monotonic() - t0
+        doc["agents"] = {}
+        for name, seq, src in sources:
+            f = out / f"{name}_stats.json"
+            st = json.loads(f.read_text()) if f.exists() else {}
+            doc["agents"][name] = {"seq": seq, "source": src, "stats": st}
+        (out / "team_eval.json").write_text(json.dumps(doc, indent=2))
         print(f"written {out / 'team_eval.json'}")
-        if args.keep:
-            print("stack still up; Ctrl-C stops it", flush=True)
-            return _run_until_signal(stack)
+        doc["stack"] = stack
+        return doc
     finally:
-        if not args.keep:
+        if not keep:
             stack.stop()
+
+
+def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
+    from .launcher import _run_until_signal
+
+    doc = run_team(
+        settings, _sources(args), Path(args.out), realtime=args.realtime,
+        feedback=not args.no_feedback, with_api=not args.no_api, data_dir=args.data_dir,
+        settle_timeout=args.settle_timeout, keep=args.keep,
+    )  # fmt: skip
+    if args.keep:
+        print("stack still up; Ctrl-C stops it", flush=True)
+        return _run_until_signal(doc["stack"])
     return 0
 
 
@@ -156,13 +196,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run-team", help="the stack plus one VO agent per sequence; joint ATE")
     p.add_argument("--agents", default="MH01,MH02,MH03", help="EuRoC MH sequences, one each")
     p.add_argument("--source", default="synthetic", help="synthetic | euroc:DIR1,DIR2,...")
-    p.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    p.add_argument("--seed", default="0", help="synthetic world seed, or one per agent: 0,1")
     p.add_argument("--frames", default="", help="A:B slice of every sequence")
     p.add_argument("--realtime", action="store_true", help="pace frames by their timestamps")
     p.add_argument("--no-feedback", action="store_true", help="server sends agents no map")
     p.add_argument("--out", default="team_out")
     p.add_argument("--data-dir", default=None)
-    p.add_argument("--api-port", type=int, default=0)
     p.add_argument("--no-api", action="store_true")
     p.add_argument("--settle-timeout", type=float, default=120.0)
     p.add_argument("--keep", action="store_true", help="keep the stack up afterwards")
