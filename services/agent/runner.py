@@ -51,6 +51,7 @@ class AgentStats:
     kf_trimmed: int = 0
     kf_lost_unacked: int = 0
     foreign_points: int = 0
+    server_maps: list[str] = field(default_factory=list)  # the server maps it was in, in order
 
     def summary(self) -> dict:
         t = np.array(self.track_ms) if self.track_ms else np.zeros(1)
@@ -62,7 +63,7 @@ class AgentStats:
             "map_ms_per_kf_median": float(np.median(m)),
             "map_ms_per_kf_p95": float(np.percentile(m, 95)),
             "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
-            "foreign_points": self.foreign_points,
+            "foreign_points": self.foreign_points, "server_maps": self.server_maps,
         }  # fmt: skip
 
 
@@ -189,6 +190,13 @@ class Agent:
             REJECTED.labels("agent", key, "invalid").inc()
             log.warning("bad ack: %s", e)
             return
+        maps = self.stats.server_maps
+        if not maps or maps[-1] != ack.map_id:
+            # The server merged our map with another agent's: we fly in a shared frame now.
+            if maps:
+                log.info("server map %s merged into %s", maps[-1], ack.map_id,
+                         extra={"agent": self.agent})  # fmt: skip
+            maps.append(ack.map_id)
         for lat in self.comm.on_ack(ack, time.monotonic()):
             AGENT_ACK_LATENCY.labels(self.agent).observe(lat)
 
