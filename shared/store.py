@@ -290,6 +290,8 @@ class Store:
             "created_ns": int(h.get(b"created_ns", 0)),
             "agents": agents,
             "n_kf": len(members),
+            # Set when the map was fused into another (CCM-SLAM §4.8); it holds nothing then.
+            "merged_into": h[b"merged_into"].decode() if b"merged_into" in h else None,
         }
 
     def map_keyframes(self, map_id: str) -> list[tuple[str, int]]:

@@ -49,6 +49,7 @@ class MapOut(BaseModel):
     n_kf: int
     created_ns: int
     keyframes_per_agent: dict[str, int] = {}
+    merged_into: str | None = None
 
 
 class PointsOut(BaseModel):

@@ -239,7 +239,7 @@ class Collaboration:
                     if entry is not None:
                         h.removed[kid] = entry
                         pipe.hset(f"{k_agent(h.agent)}:removed", str(kid), packb(list(entry)))
-        pipe.hset(k_map(source), "merged_into", target)
+        pipe.hset(k_map(source), mapping={"merged_into": target, "agents": ""})
         pipe.srem(f"{P}:maps", source)
         pipe.delete(k_map_kfs(source), loops_key(source))
         pipe.execute()
