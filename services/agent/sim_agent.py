@@ -8,7 +8,8 @@ translation is multiplied by a scale that drifts. With every noise set to zero t
 estimate is the ground truth expressed in the frame of the first camera.
 
 Cheap by design (the load-test agent): per frame a few 4x4 products; per keyframe
-one vectorized projection of the landmarks near the camera.
+one vectorized pass over the landmarks that keeps those inside the view cone and
+projects only them (~2 ms, so tens of agents share one core).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ class LandmarkWorld:
             pts.append(self._box_surface(rng, plo, phi, density * 2, sides_only=True))
             n_pillars += 1
         self.points = np.concatenate(pts)
+        self.points_t = np.ascontiguousarray(self.points.T)  # (3, N): fast column access
         self.descriptors = rng.integers(0, 256, size=(len(self.points), 32), dtype=np.uint8)
         self.lo, self.hi = lo, hi
 
@@ -135,6 +137,7 @@ class SimAgent:
         self.last_kf: tuple[int, np.ndarray, np.ndarray, int] | None = None  # id, T_l, T_w, ns
         self.recent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.covis_window = covis_window
+        self._cone2 = _view_cone_tan2(self.cam)
 
     def __len__(self) -> int:
         return len(self.traj)
@@ -189,12 +192,21 @@ class SimAgent:
 
     def observe(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Visible landmark ids, their true camera-frame points and noisy pixels."""
-        P = self.world.points
-        c = T_w_c[:3, 3]
-        near = np.nonzero(np.abs(P - c).max(axis=1) < self.max_range)[0]
-        X_c = (P[near] - c) @ T_w_c[:3, :3]
+        c, R = T_w_c[:3, 3], T_w_c[:3, :3]
+        Pt = self.world.points_t
+        dx, dy, dz = Pt[0] - c[0], Pt[1] - c[1], Pt[2] - c[2]
+        x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+        y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+        z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
+        # Projecting every landmark of the hall cost most of a keyframe; only points in
+        # the depth range and inside a cone that contains the image can be valid. (A
+        # (N, 3) @ (3, 3) product is slow in numpy, hence the three columns.)
+        cand = (z > 0.2) & (z < self.max_range) & (x * x + y * y <= self._cone2 * z * z)
+        near = np.nonzero(cand)[0]
+        D = self.world.points[near] - c
+        keep = np.abs(D).max(axis=1) < self.max_range
+        near, X_c = near[keep], D[keep] @ R
         uv, valid = self.cam.project(X_c, min_depth=0.2)
-        valid &= X_c[:, 2] < self.max_range
         ids = near[valid]
         X_c, uv = X_c[valid], uv[valid]
         if len(ids) > self.max_features:
@@ -240,11 +252,16 @@ class SimAgent:
         if self.last_kf is not None:
             pred_id = self.last_kf[0]
             T_pred = se3_inv(self.last_kf[1]) @ T_l_c
-            best, best_w = pred_id, -1
-            for oid, (lms, _T_l_o) in self.recent.items():
-                w = len(np.intersect1d(lms, ids, assume_unique=True))
-                if w > best_w:
-                    best, best_w = oid, w
+            # Shared landmarks with every recent keyframe in one pass (ids are sorted):
+            # the first keyframe with the highest count wins, as a scan in order would.
+            owners = list(self.recent)
+            lms = np.concatenate([v[0] for v in self.recent.values()])
+            who = np.repeat(np.arange(len(owners)), [len(v[0]) for v in self.recent.values()])
+            pos = np.searchsorted(ids, lms)
+            hit = pos < len(ids)
+            hit[hit] = ids[pos[hit]] == lms[hit]
+            w = np.bincount(who[hit], minlength=len(owners))
+            best = owners[int(np.argmax(w))] if len(owners) else pred_id
             parent_id = best
             T_par = se3_inv(self.recent[best][1]) @ T_l_c
         kf = NewKeyframe(
@@ -266,3 +283,15 @@ class SimAgent:
             self.recent.popitem(last=False)
         self.last_kf = (kf_id, T_l_c, T_w_c, stamp)
         return SimKeyframe(kf, new_mps, ids)
+
+
+def _view_cone_tan2(cam: PinholeRadTan) -> float:
+    """Squared tangent of a cone around the optical axis that contains every ray that
+    projects into the image (10 % margin), for culling before projection."""
+    w, h = cam.width - 1, cam.height - 1
+    t = np.linspace(0.0, 1.0, 200)
+    z = np.zeros_like(t)
+    edge = np.concatenate([np.stack([t * w, z], 1), np.stack([t * w, z + h], 1),
+                           np.stack([z, t * h], 1), np.stack([z + w, t * h], 1)])  # fmt: skip
+    r2 = float((cam.undistort_points(edge) ** 2).sum(axis=1).max())
+    return min(r2 * 1.21, cam.max_r2)

@@ -15,11 +15,22 @@ from .server_map import ServerMap
 
 def is_redundant(smap: ServerMap, kf_gid: int, ratio: float = 0.98, min_others: int = 3) -> bool:
     kf = smap.kfs[kf_gid]
-    pts = kf.observed()
+    # A keyframe observes a point through one keypoint at most (the map keeps that
+    # invariant), so its point list needs no np.unique.
+    pts = kf.mp[kf.mp >= 0].tolist()
     if len(pts) < 20:
         return False
-    n = sum(1 for g in pts.tolist() if len(smap.mps[g].obs) - 1 >= min_others)
-    return n >= ratio * len(pts)
+    # Most keyframes fail within their first few dozen points: stop as soon as more
+    # than (1 - ratio) of them are seen by too few others, instead of counting all.
+    allowed = len(pts) - ratio * len(pts)
+    bad = 0
+    mps = smap.mps
+    for g in pts:
+        if len(mps[g].obs) <= min_others:
+            bad += 1
+            if bad > allowed:
+                return False
+    return True
 
 
 def find_redundant(

@@ -27,7 +27,7 @@ from shared.messages import KeyframeBatch, MapPoints, NewKeyframe
 
 from .fusion import fuse_by_projection
 from .pose_refine import refine_pose
-from .server_map import ServerKeyframe, ServerMap, ServerMapPoint, gid
+from .server_map import ID_BITS, NO_MP, ServerKeyframe, ServerMap, ServerMapPoint, gid
 
 
 @dataclass
@@ -238,13 +238,19 @@ class AgentHandler:
         cam = self.camera
         g = self.kf_gid(kf.id)
         xy = cam.undistort_points(kf.keypoints).astype(np.float64)
-        mp = np.full(len(kf.mp_ids), -1, np.int64)
         has = kf.mp_ids >= 0
-        mp[has] = [self.mp_gid(int(i)) for i in kf.mp_ids[has]]
-        known = np.array([m in self.smap.mps for m in mp.tolist()], dtype=bool) & has
+        mp = np.where(has, (self.index << ID_BITS) | kf.mp_ids.astype(np.int64), NO_MP)
+        if self.aliases:
+            al = self.aliases
+            for j in [j for j, m in enumerate(mp.tolist()) if m in al]:
+                mp[j] = self.mp_gid(int(kf.mp_ids[j]))
+        # One dict lookup per keypoint gives both the mask and the points (the hot path
+        # of every keyframe: ~1000 keypoints).
+        pts = list(map(self.smap.mps.get, mp.tolist()))
+        known = np.fromiter((p is not None for p in pts), dtype=bool, count=len(pts)) & has
         T = T_init
         if self.params.refine_poses and known.sum() >= 20:
-            P = np.array([self.smap.mps[m].pos for m in mp[known].tolist()])
+            P = np.concatenate([pts[j].pos for j in np.nonzero(known)[0].tolist()]).reshape(-1, 3)
             r = refine_pose(T_init, xy[known], P, cam.fx)
             if r.accepted:
                 T = r.T_m_c
@@ -262,6 +268,14 @@ class AgentHandler:
                 ):
                     lam_hat = np.linalg.norm((se3_inv(T_pred) @ T)[:3, 3]) / t_hat
                     self.lam += self._kappa(kf) * (lam_hat - self.lam)
+        # This keyframe's own new points (they normally come in the same batch) are
+        # created before it is inserted, so add_keyframe attaches them together with
+        # its other observations instead of one add_observation each.
+        own = [i for i, v in self.pending_mps.items() if v[0] == kf.id]
+        created = set(self._create_mps(kf.id, own, T, g, res)) if own else set()
+        if created:
+            fresh = np.fromiter((m in created for m in mp.tolist()), dtype=bool, count=len(mp))
+            known |= fresh & has
         waiting = np.nonzero(has & ~known)[0]
         mp_known = np.where(known, mp, -1)
         skf = ServerKeyframe(
@@ -318,22 +332,32 @@ class AgentHandler:
             T_ref = self.kf_pose(ref)
             if T_ref is None:
                 continue
-            ids.sort()
-            items = [self.pending_mps.pop(i) for i in ids]
-            P = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
-            pos = transform_points(T_ref, self.scale * P)
             ref_g = self.kf_gid(ref)
             if ref_g not in self.smap.kfs:
                 ref_g = self.removed[ref][0] if ref in self.removed else ref_g
-            for k, i in enumerate(ids):
-                g = gid(self.index, i)
-                desc = np.asarray(items[k][2], np.uint8)
-                self.smap.add_map_point(ServerMapPoint(g, pos[k], desc, ref_g))
-                res.new_mps.append(g)
-                res.ack_mp_ids.append(i)
-                for kf_g, j in self.waiting_obs.pop(g, ()):
-                    if self.smap.add_observation(kf_g, j, g):
-                        res.changed_kfs.add(kf_g)
+            self._create_mps(ref, ids, T_ref, ref_g, res)
+
+    def _create_mps(
+        self, ref: int, ids: list[int], T_ref: np.ndarray, ref_g: int, res: IngestResult
+    ) -> list[int]:
+        """Pending points anchored to keyframe ``ref`` (pose ``T_ref``) enter the map;
+        returns their gids."""
+        ids.sort()
+        items = [self.pending_mps.pop(i) for i in ids]
+        P = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
+        pos = transform_points(T_ref, self.scale * P)
+        out = []
+        for k, i in enumerate(ids):
+            g = gid(self.index, i)
+            desc = np.asarray(items[k][2], np.uint8)
+            self.smap.add_map_point(ServerMapPoint(g, pos[k], desc, ref_g))
+            res.new_mps.append(g)
+            res.ack_mp_ids.append(i)
+            out.append(g)
+            for kf_g, j in self.waiting_obs.pop(g, ()):
+                if self.smap.add_observation(kf_g, j, g):
+                    res.changed_kfs.add(kf_g)
+        return out
 
     def _associate(self, skf: ServerKeyframe, mp_ids: np.ndarray, res: IngestResult) -> None:
         if len(mp_ids) != len(skf.mp):

@@ -86,16 +86,22 @@ class ServerMap:
         self.agents.add(kf.agent)
         mp = kf.mp
         g = kf.gid
+        idx = np.nonzero(mp >= 0)[0]
+        # A second keypoint on the same point is dropped (numpy, not a Python set: this
+        # runs over every keypoint of every keyframe).
+        _, first = np.unique(mp[idx], return_index=True)
+        if len(first) < len(idx):
+            dup = np.ones(len(idx), dtype=bool)
+            dup[first] = False
+            mp[idx[dup]] = NO_MP
+            idx = idx[~dup]
+        get = self.mps.get
         pts = []
-        seen: set[int] = set()
-        for j in np.nonzero(mp >= 0)[0].tolist():
-            m = int(mp[j])
-            p = self.mps.get(m)
-            if p is None or m in seen:
-                mp[j] = NO_MP  # unknown point or a second keypoint on the same point
-                continue
-            seen.add(m)
-            pts.append((j, p))
+        for j, p in zip(idx.tolist(), map(get, mp[idx].tolist()), strict=True):
+            if p is None:
+                mp[j] = NO_MP  # unknown point
+            else:
+                pts.append((j, p))
         # A new keyframe has no edges yet: count all co-observers at C speed, then
         # mirror the counts (this is the hot path of every keyframe insertion).
         c = Counter(chain.from_iterable(p.obs for _, p in pts))
@@ -151,8 +157,15 @@ class ServerMap:
         too (their gids are returned). Children move to their best covisible keyframe."""
         kf = self.kfs[kf_gid]
         seen = [int(g) for g in kf.observed()]
-        for j in np.nonzero(kf.mp >= 0)[0].tolist():
-            self._unobserve(kf, j)
+        # Every edge of this keyframe goes, so its observations are dropped without
+        # the per-observer counter updates of _unobserve (which made a removal cost
+        # points x observers); the edges are cut below in one pass over its row.
+        idx = np.nonzero(kf.mp >= 0)[0]
+        for j, g in zip(idx.tolist(), kf.mp[idx].tolist(), strict=True):
+            p = self.mps.get(g)
+            if p is not None and p.obs.get(kf_gid) == j:
+                del p.obs[kf_gid]
+        kf.mp[idx] = NO_MP
         dead = []
         for g in seen:
             p = self.mps.get(g)

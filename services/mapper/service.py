@@ -67,6 +67,7 @@ class MapActor:
         self.q: queue.Queue = queue.Queue()
         self.lock = threading.RLock()
         self.rng = random.Random(smap.map_id)
+        self._cull_version = -1
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
         self.retired_into: str | None = None  # set when this map was merged into another
 
@@ -99,12 +100,19 @@ class MapActor:
             self._feedback()
 
     def _idle(self) -> None:
+        # Idle work holds the GIL for milliseconds at a time: it waits while any map has
+        # a batch queued, so it never slows down another agent's registration.
+        if self.svc.batches_waiting():
+            return
         try:
             with self.lock:
                 self.svc.fuse(self.smap)
         except Exception:
             log.exception("point fusion failed")
-        if self.svc.settings.mapper.redundancy:
+        # One rejection round per change of the map, not one per 50 ms poll (with 8
+        # agents, idle rounds on unchanged maps took most of the mapper's CPU).
+        if self.svc.settings.mapper.redundancy and self.smap.version != self._cull_version:
+            self._cull_version = self.smap.version
             try:
                 with self.lock:
                     self.svc.cull(self.smap, self.rng)
@@ -238,6 +246,10 @@ class MapperService:
         MAP_POINTS.labels(h.map_id).set(len(h.smap.mps))
         PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
         return ack
+
+    def batches_waiting(self) -> bool:
+        """Whether any map actor has a keyframe batch queued."""
+        return any(a.q.qsize() for a in list(self.actors.values()))
 
     def fuse(self, smap: ServerMap) -> int:
         """Point fusion for keyframes registered since the last call (idle work, so it
