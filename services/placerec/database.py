@@ -16,7 +16,8 @@ recognition vs. map matching). Scoring and candidate selection follow ORB-SLAM's
 Inverted lists are ``array.array`` buffers: appending is O(1) and numpy reads them
 without copying (``np.frombuffer``), so a query is a handful of concatenations and
 one ``np.bincount`` whatever the number of keyframes. Removal marks a slot dead;
-lists are compacted once dead entries outnumber live ones.
+lists are compacted once dead entries outnumber live ones. Not thread-safe: one
+worker owns a database.
 """
 
 from __future__ import annotations

@@ -3,7 +3,17 @@
 Nothing here refers to live map objects: a service builds a :class:`KeyframeData`
 from a keyframe and its map points (positions expressed in that keyframe's own
 camera frame, so two maps of different scale can be compared) and hands it to the
-database and to geometric verification.
+database and to geometric verification::
+
+    voc = Vocabulary.load()                       # shipped data/orb_k10_l5.npz
+    db = KeyframeDatabase(voc.n_words)
+    kf = KeyframeData(gid, map_id, agent, xy, octaves, desc, mp, p_c, fx).compute_bow(voc)
+    cands = db.query(kf.bow, neighbours=covis(kf.gid), covisible=covis, query_gid=kf.gid,
+                     maps=[kf.map_id])            # intra-map loop; exclude_maps= for merging
+    db.add(kf.gid, kf.map_id, kf.bow)
+    for gid in checker.update([c.gid for c in cands], covis):   # one checker per stream
+        res = verify(kf, kf_data(gid), neighbourhood_points(gid))
+        if res.accepted: ...                      # res.S_q_c, res.kp_q/kp_c/mp_q/mp_c
 """
 
 from __future__ import annotations

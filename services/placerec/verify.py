@@ -370,9 +370,7 @@ def verify(
 
     # Step 5: the candidate's neighbourhood seen from q.
     nb = neighbourhood if neighbourhood is not None else MapPoints.of_keyframe(c)
-    matched_mp = set(c.mp[kc].tolist())
-    fresh = np.array([m not in matched_mp for m in nb.mp.tolist()], bool)
-    fresh &= np.isfinite(nb.p_c).all(axis=1)
+    fresh = ~np.isin(nb.mp, c.mp[kc]) & np.isfinite(nb.p_c).all(axis=1)
     allowed = np.ones(len(q), bool)
     allowed[kq] = False
     src = np.nonzero(fresh)[0]

@@ -267,8 +267,7 @@ def kmajority(
     cen = d8[_seed_pp(d, k, rng)]
     labels = None
     for _ in range(max_iter):
-        dist = hamming_u64(d[:, None, :], as_u64(cen)[None, :, :])
-        new = dist.argmin(axis=1)
+        new = assign(d, as_u64(cen))
         if labels is not None and np.array_equal(new, labels):
             break
         labels = new
@@ -278,8 +277,16 @@ def kmajority(
         remap[used] = np.arange(len(used))
         labels = remap[labels]
         cen = _majority(d8, labels, len(used))
-    dist = hamming_u64(d_all[:, None, :], as_u64(cen)[None, :, :])
-    return cen, dist.argmin(axis=1)
+    return cen, assign(d_all, as_u64(cen))
+
+
+def assign(d: np.ndarray, centres: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """Nearest centre of each (n, 4) uint64 descriptor, in chunks so the (n, k, 4)
+    XOR table of a million descriptors never sits in memory at once."""
+    out = np.empty(len(d), np.int64)
+    for a in range(0, len(d), chunk):
+        out[a : a + chunk] = hamming_u64(d[a : a + chunk, None, :], centres[None]).argmin(axis=1)
+    return out
 
 
 def train(
@@ -330,10 +337,12 @@ def train(
     word_of_node[leaves] = np.arange(len(leaves))
     voc = Vocabulary(k, levels, np.stack(node_desc), ch, np.array(depth), np.ones(len(leaves)),
                      word_of_node, fv_level)  # fmt: skip
-    words, _ = voc.descend(desc)
+    words = np.concatenate([voc.descend(desc[a : a + 65536])[0]
+                            for a in range(0, len(desc), 65536)])  # fmt: skip
     n_images = len(np.unique(image_of_desc))
-    pairs = np.unique(np.stack([image_of_desc.astype(np.int64), words.astype(np.int64)]), axis=1)
-    n_i = np.bincount(pairs[1], minlength=len(leaves))
+    # Images containing each word: unique (image, word) keys, counted per word.
+    keys = np.unique(image_of_desc.astype(np.int64) * len(leaves) + words)
+    n_i = np.bincount(keys % len(leaves), minlength=len(leaves))
     # A word no training image reached gets the largest weight (seen in at most one).
     voc.idf = np.log(n_images / np.maximum(n_i, 1)).astype(np.float64)
     log.info("vocabulary: %d nodes, %d words from %d descriptors of %d images",
