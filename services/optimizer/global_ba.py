@@ -53,6 +53,8 @@ class BAParams:
     # "colamd" (GTSAM's default), "metis", or "points_first" (Schur-like:
     # points eliminated first, the reduced camera system last).
     ordering: str = "points_first"
+    diagonal_damping: bool = True  # LM damping scaled by the Hessian's diagonal (as g2o)
+    lambda_initial: float = 1e-5
 
 
 @dataclass
@@ -193,6 +195,8 @@ def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correcti
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(p.max_iters)
     lm.setRelativeErrorTol(p.rel_tol)
+    lm.setDiagonalDamping(p.diagonal_damping)
+    lm.setlambdaInitial(p.lambda_initial)
     ordering = _ordering(graph, cam_key[cam].tolist(), p.ordering)
     if ordering is None:
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
