@@ -3,6 +3,8 @@ correction to a live server map (CCM-SLAM §4.9, Fig. 4). Seeded synthetic scene
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -235,12 +237,16 @@ def test_global_ba_skips_single_observation_points_and_unseen_keyframes():
     drop = ((snap.obs_mp == 0) & (np.arange(len(snap.obs_mp)) != np.argmax(snap.obs_mp == 0))) | (
         snap.obs_kf == 9
     )
-    from dataclasses import replace
-
+    ref = snap.mp_ref.copy()
+    ref[0] = snap.kf_gids[5]
     snap = replace(snap, obs_kf=snap.obs_kf[~drop], obs_mp=snap.obs_mp[~drop],
-                   obs_xy=snap.obs_xy[~drop], obs_octave=snap.obs_octave[~drop])  # fmt: skip
+                   obs_xy=snap.obs_xy[~drop], obs_octave=snap.obs_octave[~drop],
+                   mp_ref=ref)  # fmt: skip
     corr = bundle_adjust(snap, BAParams(max_iters=3))
-    assert np.array_equal(corr.mp_pos[0], snap.mp_pos[0])
+    # Point 0 was not optimized: it moved rigidly with its reference keyframe.
+    C = corr.T_m_kf[5] @ se3_inv(snap.T_m_kf[5])
+    assert not np.allclose(C, np.eye(4), atol=1e-4)
+    assert np.allclose(corr.mp_pos[0], C[:3, :3] @ snap.mp_pos[0] + C[:3, 3])
     assert np.array_equal(corr.T_m_kf[9], snap.T_m_kf[9])
     assert corr.stats["ba_kfs"] == 9 and corr.stats["ba_points"] <= 199
 
