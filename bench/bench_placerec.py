@@ -8,7 +8,8 @@ its neighbours along the flight. Queries are fresh perturbed copies of random
 frames, timed from descriptors to candidates (BoW conversion, inverted-file
 scoring, group accumulation), with the query's flight neighbours as its covisible
 keyframes; recall@1 counts the top candidate coming from the same frame or a
-flight neighbour.
+flight neighbour. Map matching: fresh rendered frames of one flight queried against
+the other flights' maps (real appearance change, no perturbation).
 
 Verification: pairs of rendered views ``--gap`` frames apart (3D points from the
 rendered depth, the second map at 2.5x scale) and, as different places, the
@@ -78,6 +79,7 @@ def main() -> int:
     ap.add_argument("--every", type=int, default=50)
     ap.add_argument("--variants", type=int, default=8)
     ap.add_argument("--queries", type=int, default=300)
+    ap.add_argument("--map-queries", type=int, default=150)
     ap.add_argument("--verify-pairs", type=int, default=20)
     ap.add_argument("--gap", type=int, default=20)
     args = ap.parse_args()
@@ -153,6 +155,28 @@ def main() -> int:
             near_hits += bool(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < 2.0
                               and Ta[:3, 2] @ Tb[:3, 2] > np.cos(np.radians(30)))  # fmt: skip
 
+    # -- map matching: real frames of one flight against the other flights' maps --------
+    def same_place(Ta: np.ndarray, Tb: np.ndarray, dist: float, deg: float) -> bool:
+        return bool(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) < dist
+                    and Ta[:3, 2] @ Tb[:3, 2] > np.cos(np.radians(deg)))  # fmt: skip
+
+    mm_with_gt, mm_top_ok, mm_any = 0, 0, 0
+    mrng = np.random.default_rng(2)
+    for _ in range(args.map_queries):
+        seq = SEQUENCES[int(mrng.integers(len(SEQUENCES)))]
+        gt = load_euroc_gt(seq)
+        k = int(mrng.integers(0, len(gt)))
+        others = [fi for fi, f in enumerate(frames) if f[0] != seq]
+        if not any(same_place(poses[fi], gt.poses[k], 1.0, 20) for fi in others):
+            continue  # no other flight has a keyframe of this place
+        mm_with_gt += 1
+        img, _ = renderer.render(gt.poses[k], k)
+        b, _ = voc.transform(extract(img).desc)
+        cands = db.query(b, [], covisible, exclude_maps=[seq], min_score=0.0)
+        mm_any += bool(cands)
+        if cands:
+            mm_top_ok += same_place(poses[cands[0].gid // n_var], gt.poses[k], 2.0, 30)
+
     # -- verification -----------------------------------------------------------------
     t_ok, t_rej, accepted, rejected_far, rot_err, scale_err = [], [], 0, 0, [], []
     vrng = np.random.default_rng(1)
@@ -201,6 +225,12 @@ def main() -> int:
                      "bow_p50": pct(t_conv, 50), "db_p50": pct(t_db, 50), "db_p95": pct(t_db, 95)},
         "query_recall_at_1": hits / max(len(t_query), 1),
         "query_recall_at_1_any_flight": near_hits / max(len(t_query), 1),
+        "map_matching": {
+            "what": "fresh rendered frames queried against the other flights' maps only, "
+                    "when one of them has a keyframe within 1 m / 20 deg",
+            "queries": mm_with_gt, "with_candidates": mm_any,
+            "top1_within_2m_30deg": mm_top_ok / max(mm_with_gt, 1),
+        },
         "candidates_mean": float(np.mean(n_cands)),
         "queries_without_candidate": int(np.sum(np.asarray(n_cands) == 0)),
         "verify_ms": {"same_place_p50": pct(t_ok, 50), "same_place_p95": pct(t_ok, 95),
@@ -222,6 +252,8 @@ def main() -> int:
         f"query recall@1 {report['query_recall_at_1']:.3f} (same frame or flight neighbour), "
         f"{report['query_recall_at_1_any_flight']:.3f} (any camera within 2 m / 30 deg)"
     )
+    print(f"map matching (other flights only): top-1 within 2 m / 30 deg for {mm_top_ok}/"
+          f"{mm_with_gt} fresh frames that have such a keyframe")  # fmt: skip
     print(f"verify accepted {accepted}/"
           f"{len(t_ok)} same-place pairs (max rot err {report['verify']['rot_err_deg_max']:.3f} "
           f"deg), rejected {rejected_far}/{len(t_rej)} different-place pairs")  # fmt: skip
