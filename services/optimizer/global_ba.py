@@ -258,7 +258,7 @@ def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correcti
             lam = opt.lambda_() if hasattr(opt, "lambda_") else float("nan")
             log.debug("BA it %d: error %.6g lambda %.3g %.2f s", it, e, lam,
                       time.perf_counter() - t_opt)  # fmt: skip
-        if e_prev - e < p.rel_tol * e_prev:
+        if e_prev - e <= p.rel_tol * e_prev:
             stop = "converged"
             break
         e_prev = e
