@@ -67,6 +67,9 @@ class Collaboration:
         self._dirty: dict[str, str] = {}  # map -> reason
         self._last_request: dict[str, float] = {}
         self._lock = threading.Lock()
+        # Poses each optimization request was made from, by (map, version): a correction
+        # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
+        self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
 
     # --- state --------------------------------------------------------------------------
     def load(self) -> None:
@@ -279,6 +282,12 @@ class Collaboration:
             snap.obs_mp.astype(np.int32), snap.obs_xy, snap.obs_octave.astype(np.uint8),
         )  # fmt: skip
         self._last_request[map_id] = time.monotonic()
+        with self._lock:
+            for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
+                del self._snap_poses[k]  # requests long superseded
+            self._snap_poses[(map_id, int(snap.version))] = dict(
+                zip(snap.kf_gids.tolist(), snap.T_m_kf.copy(), strict=True)
+            )
         if svc.bus is not None:
             svc.bus.put(keys.map_optimize(map_id), req.encode())
         OPT_REQUESTS.labels(reason).inc()
@@ -309,28 +318,33 @@ class Collaboration:
         corr = Correction(
             map_id=c.map_id, base_version=c.base_version, kf_gids=c.kf_gids, T_m_kf=c.T_m_kf,
             kf_scale=c.kf_scale, mp_gids=c.mp_gids, mp_pos=c.mp_pos, stats=c.stats,
+            outliers=np.stack([c.outlier_kf, c.outlier_mp], axis=1),
         )  # fmt: skip
+        with self._lock:
+            snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
         with svc.actor(c.map_id).lock:
-            res = apply_correction(smap, corr)
+            res = apply_correction(smap, corr, snap_poses)
+            changed_kfs = res.kfs | res.kfs_propagated
             for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
                 kf, p = smap.kfs.get(kg), smap.mps.get(mg)
                 if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
                     smap._unobserve(kf, p.obs[kg])
-                    res.changed_kfs.add(kg)
+                    changed_kfs.add(kg)
             self._rescale_handlers(smap, corr)
             pipe = svc.store.pipeline()
-            for g in res.changed_kfs:
+            for g in changed_kfs:
                 kf = smap.kfs.get(g)
                 if kf is not None:
                     pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, c.map_id))
-            persist.write_points(pipe, smap, sorted(res.changed_mps), svc.names)
+            persist.write_points(pipe, smap, sorted(res.mps), svc.names)
             for h in svc.handlers.values():
                 if h.smap is smap:
                     persist.write_handler(pipe, h)
             pipe.execute()
         CORRECTIONS.inc()
-        log.info("applied correction to %s: %d keyframes, %d points (%s)", c.map_id,
-                 len(res.changed_kfs), len(res.changed_mps), c.stats)  # fmt: skip
+        log.info("applied correction to %s: %d keyframes (%d carried along), %d points (%s)",
+                 c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
+                 c.stats)  # fmt: skip
         return True
 
     def _rescale_handlers(self, smap, corr) -> None:
