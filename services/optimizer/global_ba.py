@@ -66,7 +66,7 @@ class BAParams:
     ordering: str = "colamd"
     diagonal_damping: bool = True  # LM damping scaled by the Hessian's diagonal (as g2o)
     lambda_initial: float = 1e-5
-    solver: str = "lm"  # "lm", "dogleg" or "gn"
+    linear_solver: str = "MULTIFRONTAL_CHOLESKY"  # GTSAM's name; no CHOLMOD in the wheel
 
 
 @dataclass
@@ -153,32 +153,25 @@ def _ordering(graph: gtsam.NonlinearFactorGraph, cam_keys: list[int], kind: str)
     raise ValueError(f"unknown ordering {kind!r}")
 
 
-def _optimizer(graph, values, ordering, p: BAParams):
-    if p.solver == "lm":
-        prm = gtsam.LevenbergMarquardtParams()
-        prm.setDiagonalDamping(p.diagonal_damping)
-        prm.setlambdaInitial(p.lambda_initial)
-        cls = gtsam.LevenbergMarquardtOptimizer
-    elif p.solver == "dogleg":
-        prm = gtsam.DoglegParams()
-        cls = gtsam.DoglegOptimizer
-    elif p.solver == "gn":
-        prm = gtsam.GaussNewtonParams()
-        cls = gtsam.GaussNewtonOptimizer
-    else:
-        raise ValueError(f"unknown solver {p.solver!r}")
+def _optimizer(graph, values, ordering, p: BAParams) -> gtsam.LevenbergMarquardtOptimizer:
+    # Levenberg-Marquardt only: Gauss-Newton and Dogleg stop with an indeterminate
+    # system on real maps (weakly seen points, the tight gauge) where damping copes.
+    prm = gtsam.LevenbergMarquardtParams()
+    prm.setDiagonalDamping(p.diagonal_damping)
+    prm.setlambdaInitial(p.lambda_initial)
     prm.setMaxIterations(p.max_iters)
     prm.setRelativeErrorTol(p.rel_tol)
+    prm.setLinearSolverType(p.linear_solver)
     if ordering is not None:
         prm.setOrdering(ordering)
-    return cls(graph, values, prm)
+    return gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
 
 
 def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correction:
     """Global BA over ``snap``; returns refined poses and points (keyframes left out of
     the graph keep their pose, points left out move rigidly with their reference
-    keyframe), the observations that are still
-    outliers, and stats (iterations, GTSAM error and inlier pixel RMSE before/after)."""
+    keyframe), the observations that are still outliers, and stats (iterations, GTSAM
+    error and inlier pixel RMSE before/after)."""
     p = params or BAParams()
     t0 = time.perf_counter()
     K, M = snap.n_kf, len(snap.mp_gids)
@@ -227,14 +220,15 @@ def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correcti
     prior = gtsam.noiseModel.Isotropic.Sigma(6, p.prior_sigma)
     for i in fixed:
         graph.add(gtsam.PriorFactorPose3(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]), prior))
-    partner = -1
-    if len(fixed) == 1:
-        partner = _gauge_partner(snap, fixed[0], kf_ok, obs_ok)
-        if partner >= 0:
-            d0 = float(np.linalg.norm(snap.T_m_kf[partner, :3, 3] - snap.T_m_kf[fixed[0], :3, 3]))
+    partner = _gauge_partner(snap, fixed[0], kf_ok, obs_ok) if len(fixed) == 1 else -1
+    if partner >= 0:
+        d0 = float(np.linalg.norm(snap.T_m_kf[partner, :3, 3] - snap.T_m_kf[fixed[0], :3, 3]))
+        if d0 > 0:
             graph.add(gtsam.RangeFactorPose3(
                 int(cam_key[fixed[0]]), int(cam_key[partner]), d0,
                 gtsam.noiseModel.Isotropic.Sigma(1, p.range_sigma_rel * d0)))  # fmt: skip
+        else:
+            partner = -1
     t_build = time.perf_counter() - t0
 
     rp0 = reprojection(snap.T_m_kf, snap.mp_pos, snap)
