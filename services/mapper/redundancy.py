@@ -4,13 +4,19 @@ A keyframe is redundant when at least ``ratio`` of the map points it observes ar
 also observed by at least ``min_others`` other keyframes. The check starts from a
 random keyframe and inspects its covisible neighbours, so connections that changed
 since a keyframe arrived are seen again later (the paper's probabilistic scheme).
+Keyframes the agent may still refine (its newest ones) are not candidates.
 """
 
 from __future__ import annotations
 
 import random
 
-from .server_map import ServerMap
+from .server_map import ID_BITS, ServerMap
+
+# The agent's local BA still moves its newest keyframes (a window of 7) and sends their
+# new poses; one culled there breaks the chain the following keyframes register through,
+# so they are left alone until the agent is done with them.
+KEEP_NEWEST = 10
 
 
 def is_redundant(smap: ServerMap, kf_gid: int, ratio: float = 0.98, min_others: int = 3) -> bool:
@@ -40,14 +46,22 @@ def find_redundant(
     ratio: float = 0.98,
     min_others: int = 3,
     max_checks: int = 10,
+    keep_newest: int = KEEP_NEWEST,
 ) -> list[int]:
-    """Redundant keyframes among a random keyframe's covisible neighbours."""
+    """Redundant keyframes among a random keyframe's covisible neighbours. The
+    ``keep_newest`` newest keyframes of each agent are never candidates."""
     if len(smap.kfs) < 3:
         return []
     start = rng.choice(list(smap.kfs))
+    # Newest gid per agent (the agent index is the gid's high bits).
+    newest: dict[int, int] = {}
+    for g in smap.kfs:
+        a = g >> ID_BITS
+        if g > newest.get(a, -1):
+            newest[a] = g
     out = []
     for g in [start, *smap.covisible(start)][:max_checks]:
-        if g in protected or g in out:
+        if g in protected or g in out or g > newest[g >> ID_BITS] - keep_newest:
             continue
         if is_redundant(smap, g, ratio, min_others):
             out.append(g)

@@ -155,8 +155,10 @@ class AgentHandler:
                 self.pending_kfs[kf.id] = kf
                 self.pending_since.setdefault(kf.id, now)
         self._queue_mps(batch.new_mps, res)
-        self._drain(res, now)
-        self._attach_ready_mps(res)  # points whose keyframe arrived in an earlier batch
+        # Pose updates before the new keyframes: a batch is a snapshot of the agent's
+        # local map, so a new keyframe's pose relative to its predecessor is relative to
+        # the predecessor's updated pose. Chained from the stale one, every new keyframe
+        # carried its predecessor's last local-BA correction as an error.
         for upd in batch.kf_updates:
             g = self.kf_gid(upd.id)
             if g in self.smap.kfs:
@@ -166,14 +168,19 @@ class AgentHandler:
                 if T is not None:
                     self.smap.kfs[g].T_m_kf = T
                     res.changed_kfs.add(g)
-                if upd.mp_ids is not None:
-                    self._associate(self.smap.kfs[g], upd.mp_ids, res)
             elif upd.id in self.pending_kfs:
                 kf = self.pending_kfs[upd.id]
                 kf.pred_id, kf.T_pred_kf = upd.pred_id, upd.T_pred_kf
                 kf.parent_id, kf.T_par_kf = upd.parent_id, upd.T_par_kf
                 if upd.mp_ids is not None:
                     kf.mp_ids = upd.mp_ids
+        self._drain(res, now)
+        self._attach_ready_mps(res)  # points whose keyframe arrived in an earlier batch
+        for upd in batch.kf_updates:
+            # Associations after the batch's points exist (no detour through waiting).
+            g = self.kf_gid(upd.id)
+            if upd.mp_ids is not None and g in self.smap.kfs and g not in res.sources:
+                self._associate(self.smap.kfs[g], upd.mp_ids, res)
         self._update_mps(batch.mp_updates, res)
         if self.has_kf(batch.kf_ref):
             self.kf_ref = batch.kf_ref
