@@ -159,8 +159,10 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) 
         holder["rec"] = Recorder(stack.zenoh_endpoint)
         time.sleep(0.5)
 
+    # Agents fly on their own computers; here they share the server's two cores, so
+    # they run at lower priority and the server gets the CPU it would have alone.
     doc = run_team(Settings(), sources, out, feedback=feedback, on_stack=attach,
-                   settle_timeout=180)  # fmt: skip
+                   settle_timeout=180, agent_nice=10)  # fmt: skip
     rec: Recorder = holder["rec"]
     rec.close()
     seq_of = {name: seq for name, seq, _ in sources}

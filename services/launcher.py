@@ -121,7 +121,12 @@ class Stack:
     def zenoh_endpoint(self) -> str:
         return self.settings.zenoh.connect[0]
 
-    def add(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
+    def add(
+        self, name: str, argv: list[str], env: dict[str, str] | None = None, nice: int = 0
+    ) -> None:
+        """Start one more process on the stack's network. ``nice`` > 0 lowers its CPU
+        priority: agents are other computers in the field, and on one test machine they
+        must not starve the server of the CPU it would have on its own."""
         e = {
             **os.environ,
             "HIVEMAP_ZENOH__MODE": "client",
@@ -129,9 +134,10 @@ class Stack:
             "HIVEMAP_REDIS_URL": self.settings.redis_url,
             **(env or {}),
         }
-        self.procs.append(
-            (name, subprocess.Popen(_hivemap_exe() + argv, env=e, start_new_session=True))
-        )
+        pre = (lambda: os.nice(nice)) if nice > 0 else None
+        proc = subprocess.Popen(_hivemap_exe() + argv, env=e, start_new_session=True,
+                                preexec_fn=pre)  # fmt: skip
+        self.procs.append((name, proc))
 
     def failed(self) -> list[str]:
         return [n for n, p in self.procs if p.poll() is not None and p.returncode != 0]

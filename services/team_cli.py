@@ -78,7 +78,7 @@ def collect(redis_url: str):
         info = store.agent_info(a) or {}
         _, stamps, poses = store.trajectory(a)
         if len(stamps):
-            out[a] = (str(info.get("map", "?")), Trajectory(stamps, poses))
+            out[a] = (str(info.get("map_id") or "?"), Trajectory(stamps, poses))
     return out
 
 
@@ -94,6 +94,7 @@ def run_team(
     settle_timeout: float = 120.0,
     on_stack=None,
     keep: bool = False,
+    agent_nice: int = 0,
 ) -> dict:
     """The whole stack plus one ``hivemap agent`` per source; waits for the agents and
     for the optimizer to settle, then evaluates. Returns the evaluation, each agent's
@@ -121,7 +122,7 @@ def run_team(
         for name, _, src in sources:
             argv = ["agent", "--id", name, "--source", src, "--server", stack.zenoh_endpoint,
                     "--out", str(out)] + (["--realtime"] if realtime else [])  # fmt: skip
-            stack.add(f"agent-{name}", argv, {"HIVEMAP_LOG_LEVEL": "WARNING", **env})
+            stack.add(f"agent-{name}", argv, {"HIVEMAP_LOG_LEVEL": "WARNING", **env}, agent_nice)
             procs.append((name, stack.procs[-1][1]))
             print(f"{name}: {src}", flush=True)
         for name, p in procs:
@@ -156,7 +157,7 @@ def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
     doc = run_team(
         settings, _sources(args), Path(args.out), realtime=args.realtime,
         feedback=not args.no_feedback, with_api=not args.no_api, data_dir=args.data_dir,
-        settle_timeout=args.settle_timeout, keep=args.keep,
+        settle_timeout=args.settle_timeout, keep=args.keep, agent_nice=args.agent_nice,
     )  # fmt: skip
     if args.keep:
         print("stack still up; Ctrl-C stops it", flush=True)
@@ -205,6 +206,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-api", action="store_true")
     p.add_argument("--settle-timeout", type=float, default=120.0)
     p.add_argument("--keep", action="store_true", help="keep the stack up afterwards")
+    p.add_argument(
+        "--agent-nice",
+        type=int,
+        default=0,
+        help="run agents at lower CPU priority (agents sharing the server's machine)",
+    )
     p.set_defaults(func=cmd_run_team)
 
     p = sub.add_parser("eval", help="per-agent and joint ATE of the server's trajectories")
