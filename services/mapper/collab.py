@@ -44,6 +44,7 @@ from .merge import (
     map_to_map,
     move_map,
     points_in_camera,
+    relative_sim3,
 )
 from .metrics import CORRECTIONS, MATCHES, MERGES, OPT_REQUESTS
 
@@ -186,7 +187,11 @@ class Collaboration:
                     h.S_m_l = S_t_s @ h.S_m_l
             add_loop_edge(target, m.query_gid, m.cand_gid)
             fres = fuse_matched(target, m.mp_q, m.mp_c)
-            lc = LoopConstraint(m.query_gid, m.cand_gid, m.S_q_c.copy())
+            # Both sides are in the target's units now: the match's scale is spent on the
+            # move, and the constraint between q and c is their relative pose (scale 1).
+            tk = target.kfs
+            S_q_c = relative_sim3(tk[m.query_gid].T_m_kf, tk[m.cand_gid].T_m_kf)
+            lc = LoopConstraint(m.query_gid, m.cand_gid, S_q_c)
             old = self.loops.pop(source.map_id, [])
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
             self.merged_into[source.map_id] = target.map_id
