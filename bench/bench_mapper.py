@@ -1,18 +1,22 @@
 """Server-mapping benchmark (server-mapping issue, items 2-4).
 
-latency: the real stack (`hivemap up` topology) with 1 and then 8 simulated agents
-  flying in real time; keyframe latency per agent, measured by the agent (publish ->
-  ack, a superset of the mapper's received -> stored -> acked) and by the mapper.
+latency: the mapping stack (router, redis, mapper as `hivemap up` runs them; with
+  --collab also placerec and optimizer) with 1 and then 8 simulated agents flying in
+  real time (each at its own nominal keyframe rate); keyframe latency per agent,
+  measured by the agent (publish -> ack, a superset of the mapper's received -> stored
+  -> acked) and by the mapper. Use >= 120 s so the maps reach their full size.
 scale: a simulated agent with 2 %/s scale drift on all of MH01, server trajectory
   ATE with the scale correction on and off.
 redundancy: an agent that flies MH01 twice; keyframes culled and the ATE change.
 
-    .venv/bin/python bench/bench_mapper.py [--seconds 60] [--only latency|scale|redundancy]
+    .venv/bin/python bench/bench_mapper.py [--seconds 120] [--collab]
+        [--only latency|scale|redundancy]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -28,16 +32,39 @@ import numpy as np  # noqa: E402
 from bench_demo import scrape  # noqa: E402
 from common import table, write_report  # noqa: E402
 
+from services import launcher  # noqa: E402
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
 from shared.redis_server import free_port  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 from shared.trajectory import SEQUENCES, Trajectory, ate, load_euroc_gt  # noqa: E402
 
+COLLAB = ("placerec", "optimizer")
 
-def run_latency(n_agents: int, seconds: float) -> list[dict]:
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port())
+
+@contextlib.contextmanager
+def _plan_without(names: tuple[str, ...]):
+    """Start the stack without the named services (item 2 measures the mapper; place
+    recognition and optimization are separate, horizontally scaled services)."""
+    orig = launcher.service_plan
+    launcher.service_plan = lambda s: [x for x in orig(s) if x.name not in names]
+    try:
+        yield
+    finally:
+        launcher.service_plan = orig
+
+
+def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dict]:
+    settings = Settings(
+        api_port=free_port(),
+        mapper_metrics_port=free_port(),
+        placerec_metrics_port=free_port(),
+        optimizer_metrics_port=free_port(),
+    )
     stack = Stack(settings)
-    stack.start(with_api=False)
+    with _plan_without(() if collab else COLLAB):
+        stack.start(with_api=False)
+    services = [name for name, _ in stack.procs]
+    load_before = os.getloadavg()
     out = Path(tempfile.mkdtemp(prefix="hivemap-bench-"))
     procs = []
     try:
@@ -51,6 +78,7 @@ def run_latency(n_agents: int, seconds: float) -> list[dict]:
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
         procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]
         procs[0][2].wait(seconds * 3 + 120)
+        load_after = os.getloadavg()
         metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
     finally:
         for _, _, p in procs:
@@ -68,7 +96,8 @@ def run_latency(n_agents: int, seconds: float) -> list[dict]:
             "median_ms": 1e3 * st["ack_latency_median_s"],
             "p95_ms": 1e3 * st["ack_latency_p95_s"],
             "mapper_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
-            "bytes_per_s": st["bytes_per_s"],
+            "bytes_per_s": st["bytes_per_s"], "flight_s": st["flight_s"],
+            "services": services, "loadavg_1m_before_after": [load_before[0], load_after[0]],
         })  # fmt: skip
     return rows
 
@@ -128,15 +157,19 @@ def run_redundancy() -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--seconds", type=float, default=120.0)
     ap.add_argument("--only", default="")
+    ap.add_argument("--collab", action="store_true", help="also run placerec and optimizer")
     args = ap.parse_args()
     report: dict = {}
     if args.only in ("", "latency"):
-        rows = run_latency(1, args.seconds) + run_latency(8, args.seconds)
+        rows = run_latency(1, args.seconds, args.collab) + run_latency(8, args.seconds, args.collab)
         report["latency"] = rows
+        report["latency_seconds"] = args.seconds
         print(table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
                            "p95_ms", "mapper_mean_ms", "bytes_per_s", "all_acked"]))  # fmt: skip
+        print("services:", rows[0]["services"], "load 1m before/after:",
+              [r["loadavg_1m_before_after"] for r in (rows[0], rows[1])])  # fmt: skip
         one = rows[0]
         eight = rows[1:]
         report["latency_pass"] = {
@@ -151,7 +184,8 @@ def main() -> int:
     if args.only in ("", "redundancy"):
         report["redundancy"] = run_redundancy()
         print("redundancy (MH01 twice):", report["redundancy"])
-    path = write_report("mapper" + (f"_{args.only}" if args.only else ""), report)
+    name = "mapper" + (f"_{args.only}" if args.only else "") + ("_collab" if args.collab else "")
+    path = write_report(name, report)
     print(f"written {path}")
     return 0
 

@@ -55,7 +55,10 @@ def build_chunk(
             i[has] = rank[np.searchsorted(uniq, kf.mp[has])]
             idx.append(i)
             sent.add(kf.gid)
-    gids = mp_gids.tolist()
+    # Agent of each point from its gid's high bits, looked up once per agent.
+    ai, inv = np.unique(mp_gids >> 40, return_inverse=True)
+    lut = np.array([names.get(int(a), "") for a in ai.tolist()], dtype=object)
+    mp_agents = lut[inv].tolist() if len(mp_gids) else []
     return MapChunk(
         agent=h.agent, map_id=smap.map_id, kf_ref=h.kf_ref,
         kf_agents=[kf.agent for kf in kfs],
@@ -63,8 +66,8 @@ def build_chunk(
         T_ref_kf=np.stack([scale_translation(T_ref_m @ kf.T_m_kf, inv_s) for kf in kfs]),
         kf_keypoints=kp, kf_descriptors=desc, kf_mp_index=idx,
         # Point ids are agent-local: the agent index (high bits) names their agent.
-        mp_agents=[names.get(g >> 40, "") for g in gids],
-        mp_ids=np.array([g & ((1 << 40) - 1) for g in gids], np.int64),
+        mp_agents=mp_agents,
+        mp_ids=mp_gids & ((1 << 40) - 1),
         p_ref=p_ref.astype(np.float64),
         mp_descriptors=(np.concatenate([p.descriptor for p in pts]) if pts
                         else np.zeros(0, np.uint8)).astype(np.uint8).reshape(-1, 32),
