@@ -3,27 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 
-from shared.metrics import serve_metrics
 from shared.settings import Settings
 
 
 def cmd_mapper(args: argparse.Namespace, settings: Settings) -> int:
+    from services.runtime import run_service
+
     from .service import MapperService
 
-    serve_metrics(settings.metrics_host, settings.metrics_port)
-    stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    svc = MapperService(settings)
-    svc.start()
-    try:
-        stop.wait()
-    finally:
-        svc.stop()
-    return 0
+    return run_service(MapperService(settings), settings)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
