@@ -33,7 +33,7 @@ from shared.messages import KeyframeEvent, Match
 
 from .database import ConsistencyChecker, KeyframeDatabase
 from .keyframe import KeyframeData, MapPoints
-from .verify import VerifyParams, verify
+from .verify import VerifyParams, match_projected, verify
 from .vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
@@ -48,6 +48,14 @@ class RecognizerParams:
     rest_after_match: int = 10
     neighbourhood_kfs: int = 10
     max_verify: int = 3  # candidates verified per query kind and keyframe
+    # ORB-SLAM3's check in the query's covisible keyframes: the Sim(3) must also
+    # predict where the candidate's points appear in (up to) this many neighbours of
+    # the query, with at least ``confirm_matches`` projection matches in each of
+    # ``confirm_min`` of them. Rejects matches whose Sim(3) is right for one view only
+    # (a far plane lets rotation trade against translation).
+    confirm_neighbours: int = 5
+    confirm_min: int = 2
+    confirm_matches: int = 20
     verify: VerifyParams = field(default_factory=VerifyParams)
 
 
@@ -187,6 +195,11 @@ class PlaceRecognizer:
                 if not res.accepted:
                     log.debug("candidate %d for %d rejected: %s", c, g, res.reason)
                     continue
+                checked, confirmed = self.confirm_in_neighbours(g, res.S_q_c, c)
+                if confirmed < min(self.p.confirm_min, checked):
+                    log.info("candidate %d for %d: Sim(3) holds in %d of %d neighbours of the "
+                             "query; rejected", c, g, confirmed, checked)  # fmt: skip
+                    continue
                 both = (res.mp_q >= 0) & (res.mp_c >= 0)
                 out.append(Match(
                     map_id, g, self.kfs[c].data.map_id, c, res.S_q_c, res.mp_q[both].copy(),
@@ -203,6 +216,30 @@ class PlaceRecognizer:
         timing.verify_s = time.perf_counter() - t1
         self.last = timing
         return out
+
+    def confirm_in_neighbours(self, q: int, S_q_c: np.ndarray, c: int) -> tuple[int, int]:
+        """(neighbours checked, neighbours where the candidate's points projected
+        through S_q_c and the neighbour's pose relative to q find enough matches)."""
+        kq = self.kfs[q]
+        nb = self.neighbourhood(c)
+        if len(nb) == 0:
+            return 0, 0
+        P_q = nb.p_c @ (S_q_c[:3, :3]).T + S_q_c[:3, 3]
+        v = self.p.verify
+        checked = confirmed = 0
+        for n in self.covisible(q)[: self.p.confirm_neighbours]:
+            kn = self.kfs.get(n)
+            if kn is None or kn.frame != kq.frame:
+                continue
+            T_n_q = se3_inv(kn.T_m_kf) @ kq.T_m_kf
+            P_n = P_q @ T_n_q[:3, :3].T + T_n_q[:3, 3]
+            pi, _, _ = match_projected(
+                P_n, nb.descriptors, None, None, kn.data, np.ones(len(kn.data), bool),
+                v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
+            )  # fmt: skip
+            checked += 1
+            confirmed += len(pi) >= self.p.confirm_matches
+        return checked, confirmed
 
     def db_score(self, kd: KeyframeData, c: int) -> float:
         from .vocabulary import bow_score
