@@ -78,6 +78,10 @@ class OptimizerSettings(BaseModel):
     ba: bool = True
     ba_max_iterations: int = Field(10, ge=0)
     ba_time_budget_s: float = Field(8.0, gt=0)
+    # A newer copy of a map restarts its optimization at most this many times in a
+    # row; then the run finishes (and the newest copy runs next), so a stream of loops
+    # can't starve the map of corrections.
+    max_restarts: int = Field(2, ge=0)
 
 
 class Settings(BaseSettings):

@@ -6,7 +6,9 @@ edges, then global BA, and publishes the result on ``hivemap/map/{map}/correctio
 Requests only enqueue (Zenoh callback); one worker thread optimizes. The newest
 request per map wins: one that arrives while its map is being optimized makes the
 worker drop the run at the next stage boundary (after PGO, after BA) and restart from
-the new copy, which carries the new constraint.
+the new copy, which carries the new constraint -- at most ``max_restarts`` times in a
+row, so that frequent loops (agents re-visiting each other's places) still get
+corrections out.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ class OptimizerService:
         self.bus: Bus | None = None
         self._thread = threading.Thread(target=self._run, name="optimizer", daemon=True)
         self.done: list[Correction] = []  # results, newest last (tests read them)
+        self._restarts: dict[str, int] = {}
 
     # --- transport-free core -------------------------------------------------------------
     def submit(self, key: str, payload: bytes) -> OptimizeRequest | None:
@@ -88,6 +91,8 @@ class OptimizerService:
         return req
 
     def _newer(self, map_id: str) -> bool:
+        if self._restarts.get(map_id, 0) >= self.settings.optimizer.max_restarts:
+            return False  # finish this one; the newest copy is next
         with self._cv:
             return map_id in self._pending
 
@@ -136,6 +141,7 @@ class OptimizerService:
             try:
                 corr = self.optimize(req)
             except Superseded:
+                self._restarts[map_id] = self._restarts.get(map_id, 0) + 1
                 SUPERSEDED.inc()
                 log.info("optimization of %s restarted: a newer copy arrived", map_id)
                 continue
@@ -143,6 +149,7 @@ class OptimizerService:
                 REJECTED.labels(SERVICE, keys.map_optimize(map_id), "internal").inc()
                 log.exception("optimization of %s failed", map_id)
                 continue
+            self._restarts[map_id] = 0
             PROCESSING.labels(SERVICE, "optimize").observe(time.perf_counter() - t0)
             OPTIMIZATIONS.labels(req.reason).inc()
             self.done.append(corr)
