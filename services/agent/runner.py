@@ -50,7 +50,8 @@ class AgentStats:
     map_ms: list[float] = field(default_factory=list)
     kf_trimmed: int = 0
     kf_lost_unacked: int = 0
-    foreign_points: int = 0
+    foreign_points: int = 0  # server points taken into the local map
+    chunks: int = 0  # server map chunks received for a keyframe still held
     server_maps: list[str] = field(default_factory=list)  # the server maps it was in, in order
 
     def summary(self) -> dict:
@@ -63,7 +64,8 @@ class AgentStats:
             "map_ms_per_kf_median": float(np.median(m)),
             "map_ms_per_kf_p95": float(np.percentile(m, 95)),
             "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
-            "foreign_points": self.foreign_points, "server_maps": self.server_maps,
+            "foreign_points": self.foreign_points, "chunks": self.chunks,
+            "server_maps": self.server_maps,
         }  # fmt: skip
 
 
@@ -211,6 +213,7 @@ class Agent:
         ref = self.vo.kfs.get(c.kf_ref)
         if ref is None or len(c.mp_ids) == 0:
             return
+        self.stats.chunks += 1
         own = {i for i in self.vo.mps if i not in self.vo.foreign}
         sel = [j for j, (a, i) in enumerate(zip(c.mp_agents, c.mp_ids.tolist(), strict=True))
                if not (a == self.agent and i in own)]  # fmt: skip

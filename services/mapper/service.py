@@ -312,9 +312,9 @@ class MapperService:
             with self.actors[smap.map_id].lock if smap.map_id in self.actors else _null():
                 chunk = build_chunk(h, m.feedback_k, self._fb_sent.setdefault(h.agent, set()),
                                     time.time_ns(), self.names)  # fmt: skip
-            self._fb_last[h.agent] = now
             if chunk is None:
-                continue
+                continue  # nothing sent (KF_ref not registered yet): no rate limit either
+            self._fb_last[h.agent] = now
             data = chunk.encode()
             self.bus.put(keys.agent_map(h.agent), data, reliable=False)
             FEEDBACK_BYTES.labels(h.agent).inc(len(data))
