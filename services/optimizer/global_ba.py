@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import gtsam
@@ -337,23 +338,32 @@ class GlobalParams:
     run_ba: bool = True
 
 
-def optimize_map(snap: MapSnapshot, params: GlobalParams | None = None) -> Correction:
+def optimize_map(
+    snap: MapSnapshot,
+    params: GlobalParams | None = None,
+    between_stages: Callable[[], None] | None = None,
+) -> Correction:
     """CCM-SLAM §4.9: Sim(3) pose-graph optimization on the essential graph, then
     global BA from its result. The returned correction holds BA's poses and points and
-    PGO's per-keyframe scales (what keyframes that arrive meanwhile need)."""
+    PGO's per-keyframe scales (what keyframes that arrive meanwhile need).
+    ``between_stages`` runs after each stage; it may raise to abandon the run (the
+    service does when a newer copy of the map arrived)."""
     p = params or GlobalParams()
+    check = between_stages or (lambda: None)
     stats: dict = {}
     corr: Correction | None = None
     if p.run_pgo:
         corr = optimize_pose_graph(snap, p.pgo)
         stats.update(corr.stats)
         snap = apply_to_snapshot(snap, corr)
+        check()
     if p.run_ba:
         ba = bundle_adjust(snap, p.ba)
         stats.update(ba.stats)
         if corr is not None:
             ba.kf_scale = corr.kf_scale
         corr = ba
+        check()
     if corr is None:
         K = snap.n_kf
         corr = Correction(snap.map_id, snap.version, snap.kf_gids.copy(), snap.T_m_kf.copy(),

@@ -25,9 +25,8 @@ from shared.metrics import PROCESSING, REJECTED, UP
 from shared.settings import Settings
 from shared.transport import Bus, open_session
 
-from .global_ba import BAParams, bundle_adjust
+from .global_ba import BAParams, GlobalParams, optimize_map
 from .metrics import OPTIMIZATIONS, SUPERSEDED
-from .pose_graph import apply_to_snapshot, optimize_pose_graph
 from .snapshot import Correction, MapSnapshot
 
 log = logging.getLogger(__name__)
@@ -102,30 +101,19 @@ class OptimizerService:
         o = self.settings.optimizer
         t0 = time.perf_counter()
         snap = snapshot_of(req)
-        corr = None
-        if len(snap.loops):
-            corr = optimize_pose_graph(snap)
-            snap = apply_to_snapshot(snap, corr)
+
+        def between_stages() -> None:
             if self._newer(req.map_id):
                 raise Superseded
-        stats = dict(corr.stats) if corr else {}
-        if o.ba and o.ba_max_iterations > 0:
-            ba = bundle_adjust(snap, BAParams(max_iters=o.ba_max_iterations,
-                                              time_budget_s=o.ba_time_budget_s))  # fmt: skip
-            stats.update(ba.stats)
-            if corr is not None:
-                ba.kf_scale = corr.kf_scale
-            corr = ba
-            if self._newer(req.map_id):
-                raise Superseded
-        if corr is None:
-            corr = Correction(
-                snap.map_id, snap.version, snap.kf_gids.copy(), snap.T_m_kf.copy(),
-                np.ones(snap.n_kf), snap.mp_gids.copy(), snap.mp_pos.copy(),
-            )  # fmt: skip
-        stats["seconds"] = time.perf_counter() - t0
-        stats["reason"] = req.reason
-        corr.stats = stats
+
+        params = GlobalParams(
+            ba=BAParams(max_iters=o.ba_max_iterations, time_budget_s=o.ba_time_budget_s),
+            run_pgo=len(snap.loops) > 0,  # nothing to distribute without a loop edge
+            run_ba=o.ba and o.ba_max_iterations > 0,
+        )
+        corr = optimize_map(snap, params, between_stages)
+        corr.stats["seconds"] = time.perf_counter() - t0
+        corr.stats["reason"] = req.reason
         return corr
 
     def _run(self) -> None:

@@ -34,7 +34,7 @@ from shared.messages import KeyframeEvent, Match
 from .database import ConsistencyChecker, KeyframeDatabase
 from .keyframe import KeyframeData, MapPoints
 from .verify import VerifyParams, match_projected, verify
-from .vocabulary import Vocabulary
+from .vocabulary import Vocabulary, bow_score
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +242,4 @@ class PlaceRecognizer:
         return checked, confirmed
 
     def db_score(self, kd: KeyframeData, c: int) -> float:
-        from .vocabulary import bow_score
-
         return bow_score(kd.bow, self.kfs[c].data.bow)
