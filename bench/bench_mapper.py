@@ -39,6 +39,26 @@ from shared.settings import Settings  # noqa: E402
 from shared.trajectory import SEQUENCES, Trajectory, ate, load_euroc_gt  # noqa: E402
 
 COLLAB = ("placerec", "optimizer")
+AGENT_NICE = 10
+
+
+def hist_quantile(metrics: dict[str, float], name: str, labels: str, q: float) -> float:
+    """Quantile of a Prometheus histogram from its cumulative buckets (linear within the
+    bucket, as PromQL's histogram_quantile)."""
+    prefix = f"{name}_bucket{{{labels},le="
+    b = sorted((float(k[len(prefix):].split('"')[1]), v) for k, v in metrics.items()
+               if k.startswith(prefix))  # fmt: skip
+    if not b or b[-1][1] == 0:
+        return float("nan")
+    rank = q * b[-1][1]
+    lo_le, lo_n = 0.0, 0.0
+    for le, n in b:
+        if n >= rank:
+            if le == float("inf"):
+                return lo_le
+            return lo_le + (le - lo_le) * (rank - lo_n) / max(n - lo_n, 1e-12)
+        lo_le, lo_n = le, n
+    return b[-1][0]
 
 
 @contextlib.contextmanager
@@ -51,6 +71,16 @@ def _plan_without(names: tuple[str, ...]):
         yield
     finally:
         launcher.service_plan = orig
+
+
+def _windows(series: list, w: float) -> list[float]:
+    """p95 ack latency (ms) of the keyframes first sent in each w-second window."""
+    if not series:
+        return []
+    a = np.array(series)
+    idx = (a[:, 0] // w).astype(int)
+    return [round(float(np.percentile(a[idx == i, 1], 95)) * 1e3, 1) if (idx == i).any()
+            else float("nan") for i in range(idx.max() + 1)]  # fmt: skip
 
 
 def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dict]:
@@ -75,7 +105,10 @@ def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dic
         argv = _hivemap_exe() + ["sim-agent"] + (
             many if n_agents > 1 else ["--id", "a1-0", "--traj", "MH01"]
         ) + ["--frames", f"0:{int(seconds * 20)}", "--out", str(out)]  # fmt: skip
-        p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
+        # The agents fly on robots in a deployment; here they share the server's 2 cores,
+        # so they run at nice 10 as in bench_team.py (their own clocks still time acks).
+        p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL,
+                             preexec_fn=lambda: os.nice(AGENT_NICE))  # fmt: skip
         procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]
         procs[0][2].wait(seconds * 3 + 120)
         load_after = os.getloadavg()
@@ -96,6 +129,16 @@ def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dic
             "median_ms": 1e3 * st["ack_latency_median_s"],
             "p95_ms": 1e3 * st["ack_latency_p95_s"],
             "mapper_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
+            "mapper_p95_ms": 1e3 * hist_quantile(
+                metrics, "hivemap_keyframe_latency_seconds", f'agent="{agent}"', 0.95),
+            "culled_total": sum(v for k, v in metrics.items()
+                                if k.startswith("hivemap_keyframes_culled_total{")),
+            "map_kfs": {k.split('"')[1]: v for k, v in metrics.items()
+                        if k.startswith("hivemap_map_keyframes{") and v > 0},
+            "lock_holds_over_200ms": metrics.get("hivemap_map_lock_hold_seconds_count", 0)
+            - metrics.get('hivemap_map_lock_hold_seconds_bucket{le="0.2"}', 0),
+            "agent_nice": AGENT_NICE,
+            "p95_ms_per_10s": _windows(st.get("ack_series", []), 10.0),
             "bytes_per_s": st["bytes_per_s"], "flight_s": st["flight_s"],
             "services": services, "loadavg_1m_before_after": [load_before[0], load_after[0]],
         })  # fmt: skip
@@ -160,21 +203,24 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=120.0)
     ap.add_argument("--only", default="")
     ap.add_argument("--collab", action="store_true", help="also run placerec and optimizer")
+    ap.add_argument("--counts", default="1,8", help="agent counts for the latency runs")
     args = ap.parse_args()
     report: dict = {}
     if args.only in ("", "latency"):
-        rows = run_latency(1, args.seconds, args.collab) + run_latency(8, args.seconds, args.collab)
+        counts = [int(x) for x in args.counts.split(",")]
+        rows = [r for n in counts for r in run_latency(n, args.seconds, args.collab)]
         report["latency"] = rows
         report["latency_seconds"] = args.seconds
         print(table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
-                           "p95_ms", "mapper_mean_ms", "bytes_per_s", "all_acked"]))  # fmt: skip
-        print("services:", rows[0]["services"], "load 1m before/after:",
-              [r["loadavg_1m_before_after"] for r in (rows[0], rows[1])])  # fmt: skip
-        one = rows[0]
-        eight = rows[1:]
+                           "p95_ms", "mapper_mean_ms", "mapper_p95_ms", "bytes_per_s",
+                           "all_acked"]))  # fmt: skip
+        loads = [r["loadavg_1m_before_after"] for r in rows if r["agent"].endswith("-0")]
+        print("services:", rows[0]["services"], "load 1m before/after:", loads)
+        one = [r for r in rows if r["agents"] == 1]
+        eight = [r for r in rows if r["agents"] > 1]
         report["latency_pass"] = {
-            "one_agent": one["median_ms"] <= 30 and one["p95_ms"] <= 100,
-            "eight_agents_p95_max_ms": max(r["p95_ms"] for r in eight),
+            "one_agent": all(r["median_ms"] <= 30 and r["p95_ms"] <= 100 for r in one),
+            "eight_agents_p95_max_ms": max((r["p95_ms"] for r in eight), default=None),
             "eight_agents": all(r["p95_ms"] <= 200 for r in eight),
         }
         print(report["latency_pass"])

@@ -72,6 +72,9 @@ class PlacerecSettings(BaseModel):
     min_matches: int = Field(40, ge=6)
     # Same-agent keyframes this close in id are neighbours, not loop candidates.
     loop_min_id_gap: int = Field(30, ge=0)
+    # Niceness the process takes on start: recognition is background work, and on a
+    # shared host keyframe ingestion (the mapper, real time) must get the CPU first.
+    nice: int = Field(5, ge=0, le=19)
 
 
 class OptimizerSettings(BaseModel):
@@ -82,6 +85,8 @@ class OptimizerSettings(BaseModel):
     # row; then the run finishes (and the newest copy runs next), so a stream of loops
     # can't starve the map of corrections.
     max_restarts: int = Field(2, ge=0)
+    # As for place recognition: a global BA may take seconds of CPU, ingestion can't.
+    nice: int = Field(10, ge=0, le=19)
 
 
 class Settings(BaseSettings):

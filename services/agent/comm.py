@@ -46,6 +46,7 @@ class CommStats:
     mp_resent: int = 0
     kf_dropped_unacked: int = 0
     ack_latencies: list[float] = field(default_factory=list)
+    ack_sent_at: list[float] = field(default_factory=list)  # first send of each, monotonic
 
 
 class CommModule:
@@ -144,6 +145,7 @@ class CommModule:
                 t0 = self.first_sent_at.pop(i, None)
                 if t0 is not None:
                     lat.append(now - t0)
+                    self.stats.ack_sent_at.append(t0)
             self.sent_kfs.pop(i, None)
             self._last_seq_by_kf.pop(i, None)
             self.acked_kfs.add(i)

@@ -48,6 +48,9 @@ class RunStats:
     ack_latency_p95_s: float = float("nan")
     bytes_per_s: float = 0.0
     all_acked: bool = False
+    # (seconds since the start of the flight, ack latency) per keyframe, for plots of
+    # latency over a run.
+    ack_series: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -189,4 +192,6 @@ class SimAgentRunner:
             s.ack_latency_p95_s = float(np.percentile(lat, 95))
         s.bytes_per_s = s.bytes / s.flight_s if s.flight_s > 0 else 0.0
         s.all_acked = not c.pending
+        pairs = zip(c.stats.ack_sent_at, c.stats.ack_latencies, strict=True)
+        s.ack_series = [[round(t - t_start, 3), round(x, 4)] for t, x in pairs]
         return s

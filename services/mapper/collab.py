@@ -55,12 +55,21 @@ log = logging.getLogger(__name__)
 SERVICE = "mapper"
 
 
+def _spread(n: int, k: int) -> np.ndarray:
+    """Indices of at most k of n items, evenly spread."""
+    if n <= k:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+
+
 def loops_key(map_id: str) -> str:
     return f"{k_map(map_id)}:loops"
 
 
 class Collaboration:
-    def __init__(self, svc: MapperService, optimize_min_interval_s: float = 3.0) -> None:
+    def __init__(
+        self, svc: MapperService, optimize_min_interval_s: float = 3.0, copy_share: float = 0.1
+    ) -> None:
         self.svc = svc
         self.loops: dict[str, list[LoopConstraint]] = {}
         self.merged_into: dict[str, str] = {}
@@ -68,6 +77,15 @@ class Collaboration:
         self._dirty: dict[str, str] = {}  # map -> reason
         self._last_request: dict[str, float] = {}
         self._lock = threading.Lock()
+        # Map copies and corrections of any map, one at a time (see ``request``).
+        self._opt_lock = threading.Lock()
+        # Seconds the last copy of each map cost the mapper: copies of a big map are
+        # spaced so that they take at most ``copy_share`` of the mapper's time.
+        self._copy_s: dict[str, float] = {}
+        self.copy_share = copy_share
+        self.persist_chunk = 4000  # points per stored slice of a correction
+        self.loop_fuse_max = 100  # matched point pairs fused per loop
+        self.fuse_slice = 10  # pairs fused per hold of the map's lock
         # Poses each optimization request was made from, by (map, version): a correction
         # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
@@ -152,18 +170,57 @@ class Collaboration:
             # fusion): the pose graph has this constraint already.
             if c in kq.loop_edges or smap.covis.get(q, {}).get(c, 0) >= 15:
                 return None
+            if self._tied_through_neighbours(smap, q, c):
+                MATCHES.labels("loop_redundant").inc()
+                return None
             add_loop_edge(smap, q, c)
-            fres = fuse_matched(smap, m.mp_q, m.mp_c)
             lc = LoopConstraint(q, c, m.S_q_c.copy())
             self.loops.setdefault(map_id, []).append(lc)
-            self._persist(map_id, fres.aliases, fres.changed_kfs, [lc])
+            self._persist(map_id, {}, {q, c}, [lc])
         finally:
             for lk in reversed(locks):
                 lk.release()
+        self._fuse_in_slices(map_id, m)
         MATCHES.labels("loop").inc()
         log.info("loop closed in %s: %d <-> %d (%d inliers)", map_id, q, c, m.inliers)
         self.mark_dirty(map_id, "loop")
         return "loop"
+
+    def _fuse_in_slices(self, map_id: str, m: Match) -> None:
+        """The loop edge carries the constraint; fused points tie the two sides for BA.
+        Matched points are the most observed ones (up to ~80 keyframes each in a dense
+        merged map), and fusing one moves all its observations, so only an evenly spread
+        subset is fused, a few pairs per hold of the map's lock."""
+        keep = _spread(len(m.mp_q), self.loop_fuse_max)
+        mp_q, mp_c = m.mp_q[keep], m.mp_c[keep]
+        aliases: dict[int, int] = {}
+        for i in range(0, len(mp_q), self.fuse_slice):
+            for _ in range(len(self.merged_into)):  # merged away meanwhile: follow it
+                if map_id not in self.merged_into:
+                    break
+                map_id = self.merged_into[map_id]
+            with self.svc.actor(map_id).lock:
+                smap = self.svc.maps.get(map_id)
+                if smap is None:
+                    return
+                fres = fuse_matched(smap, mp_q[i : i + self.fuse_slice],
+                                    mp_c[i : i + self.fuse_slice], aliases)  # fmt: skip
+                aliases.update(fres.aliases)
+                self._persist(map_id, fres.aliases, fres.changed_kfs, [])
+
+    @staticmethod
+    def _tied_through_neighbours(smap, q: int, c: int, k: int = 10) -> bool:
+        """Whether q's and c's neighbourhoods already share a keyframe or a loop edge
+        (ORB-SLAM discards loop candidates connected to the query's covisible keyframes).
+        Two agents flying the same route find such a "loop" every few keyframes; the
+        pose graph holds the place together already, and fusing the matched points would
+        cost ~0.3 s of the map's lock each time."""
+        nq = set(smap.covisible(q, k=k)) | {q}
+        nc = set(smap.covisible(c, k=k)) | {c}
+        if nq & nc:
+            return True
+        kfs = smap.kfs
+        return any(kfs[n].loop_edges & nc for n in nq if n in kfs)
 
     def _merge(self, qm: str, cm: str, m: Match) -> str | None:
         svc = self.svc
@@ -262,7 +319,8 @@ class Collaboration:
             out = []
             for map_id, reason in list(self._dirty.items()):
                 map_id = self.merged_into.get(map_id, map_id)
-                if now - self._last_request.get(map_id, -1e9) >= self.min_interval:
+                interval = max(self.min_interval, self._copy_s.get(map_id, 0.0) / self.copy_share)
+                if now - self._last_request.get(map_id, -1e9) >= interval:
                     out.append((map_id, reason))
                     self._dirty.pop(map_id, None)
             for map_id in [m for m in self._dirty if m in self.merged_into]:
@@ -270,16 +328,23 @@ class Collaboration:
             return out
 
     def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
-        from services.optimizer.snapshot import snapshot_from_map
+        from services.optimizer.snapshot import build_snapshot, capture_map
 
         svc = self.svc
         smap = svc.maps.get(map_id)
         if smap is None or len(smap.kfs) < 3:
             return None
-        with svc.actor(map_id).lock:
-            loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
-                     if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
-            snap = snapshot_from_map(smap, loops)
+        t0 = time.perf_counter()
+        # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
+        # built outside it, with corrections held off so point positions stay in one frame.
+        with self._opt_lock:
+            with svc.actor(map_id).lock:
+                loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
+                         if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
+                cap = capture_map(smap, loops)
+            t1 = time.perf_counter()
+            snap = build_snapshot(cap)
+        t2 = time.perf_counter()
         req = OptimizeRequest(
             map_id, snap.version, reason, time.time_ns(), float(snap.fx), snap.kf_gids,
             snap.T_m_kf, snap.fixed_gids, snap.edges, snap.loops, snap.S_loop, snap.mp_gids,
@@ -293,11 +358,18 @@ class Collaboration:
             self._snap_poses[(map_id, int(snap.version))] = dict(
                 zip(snap.kf_gids.tolist(), snap.T_m_kf.copy(), strict=True)
             )
+        data = req.encode()
+        t3 = time.perf_counter()
         if svc.bus is not None:
-            svc.bus.put(keys.map_optimize(map_id), req.encode())
+            svc.bus.put(keys.map_optimize(map_id), data)
+        t4 = time.perf_counter()
+        with self._lock:
+            self._copy_s[map_id] = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
-        log.info("optimization requested for %s (%s): %d keyframes, %d loops", map_id, reason,
-                 len(snap.kf_gids), len(snap.loops))  # fmt: skip
+        log.info("optimization requested for %s (%s): %d keyframes, %d loops, %.1f MB; "
+                 "capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
+                 map_id, reason, len(snap.kf_gids), len(snap.loops), len(data) / 1e6,
+                 1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))  # fmt: skip
         return req
 
     def on_correction_bytes(self, key: str, payload: bytes) -> bool:
@@ -327,30 +399,50 @@ class Collaboration:
         )  # fmt: skip
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
-        with svc.actor(c.map_id).lock:
-            res = apply_correction(smap, corr, snap_poses)
-            changed_kfs = res.kfs | res.kfs_propagated
-            for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
-                kf, p = smap.kfs.get(kg), smap.mps.get(mg)
-                if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
-                    smap._unobserve(kf, p.obs[kg])
-                    changed_kfs.add(kg)
-            self._rescale_handlers(smap, corr)
-            pipe = svc.store.pipeline()
-            for g in changed_kfs:
-                kf = smap.kfs.get(g)
-                if kf is not None:
-                    pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, c.map_id))
-            persist.write_points(pipe, smap, sorted(res.mps), svc.names)
-            for h in svc.handlers.values():
-                if h.smap is smap:
-                    persist.write_handler(pipe, h)
-            pipe.execute()
+        with self._opt_lock:
+            with svc.actor(c.map_id).lock:
+                res = apply_correction(smap, corr, snap_poses)
+                changed_kfs = res.kfs | res.kfs_propagated
+                for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
+                    kf, p = smap.kfs.get(kg), smap.mps.get(mg)
+                    if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
+                        smap._unobserve(kf, p.obs[kg])
+                        changed_kfs.add(kg)
+                self._rescale_handlers(smap, corr)
+                pipe = svc.store.pipeline()
+                for h in svc.handlers.values():
+                    if h.smap is smap:
+                        persist.write_handler(pipe, h)
+                pipe.execute()
+            self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         CORRECTIONS.inc()
         log.info("applied correction to %s: %d keyframes (%d carried along), %d points (%s)",
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
                  c.stats)  # fmt: skip
         return True
+
+    def _persist_in_chunks(self, map_id: str, kfs: list[int], mps: list[int]) -> None:
+        """Store corrected keyframes and points a slice at a time, each slice under the
+        map's lock and serialized from the live map: batches get the lock between slices
+        (a whole 2000-keyframe map takes about a second to write), and a slice never
+        overwrites a newer value an agent's batch stored meanwhile."""
+        svc = self.svc
+        lock = svc.actor(map_id).lock
+        n_kf, n_mp = self.persist_chunk // 20, self.persist_chunk
+        while kfs or mps:
+            kf_part, kfs = kfs[:n_kf], kfs[n_kf:]
+            mp_part, mps = (mps[:n_mp], mps[n_mp:]) if not kf_part else ([], mps)
+            with lock:
+                smap = svc.maps.get(map_id)
+                if smap is None:
+                    return  # merged away: the merge stored the moved map whole
+                pipe = svc.store.pipeline()
+                for g in kf_part:
+                    kf = smap.kfs.get(g)
+                    if kf is not None:
+                        pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, map_id))
+                persist.write_points(pipe, smap, mp_part, svc.names)
+                pipe.execute()
 
     def _rescale_handlers(self, smap, corr) -> None:
         """Keyframes chained after the correction continue at the corrected scale of

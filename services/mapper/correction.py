@@ -126,20 +126,23 @@ def apply_correction(
                     smap.map_id, len(res.kfs_unanchored))  # fmt: skip
 
     # Points: optimized position if anchored in the snapshot, else moved with their ref.
+    # This runs under the map's lock over every point of the map (150k in a big merged
+    # map), so the loop does nothing but look up and assign; rows are views of mp_pos
+    # (positions are replaced, never edited in place).
     snap_kfs = set(corr.kf_gids.tolist())
-    in_corr = set()
-    for m, p in zip(corr.mp_gids.tolist(), corr.mp_pos, strict=True):
-        mp = smap.mps.get(m)
+    mps = smap.mps
+    pos = np.asarray(corr.mp_pos, np.float64)
+    in_corr = []
+    for i, m in enumerate(corr.mp_gids.tolist()):
+        mp = mps.get(m)
         if mp is None:
             res.mps_missing += 1
-            continue
-        if mp.ref_kf in snap_kfs:
-            mp.pos = np.array(p, np.float64)
-            res.mps.add(m)
-            in_corr.add(m)
-    for m, mp in smap.mps.items():
-        if m in in_corr:
-            continue
+        elif mp.ref_kf in snap_kfs:
+            mp.pos = pos[i]
+            in_corr.append(m)
+    res.mps.update(in_corr)
+    for m in mps.keys() - res.mps:
+        mp = mps[m]
         Cr = C.get(mp.ref_kf)
         if Cr is None:
             # Reference gone or unanchored: any corrected observer will do.

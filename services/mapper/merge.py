@@ -83,10 +83,15 @@ def move_map(target: ServerMap, source: ServerMap, S_t_s: Sim3) -> FusionResult:
     return res
 
 
-def fuse_matched(smap: ServerMap, keep: np.ndarray, drop: np.ndarray) -> FusionResult:
+def fuse_matched(
+    smap: ServerMap, keep: np.ndarray, drop: np.ndarray, earlier: dict[int, int] | None = None
+) -> FusionResult:
     """Fuse matched point pairs (one landmark seen from both sides of a match).
-    Pairs whose points are gone, identical, or already fused are skipped."""
+    Pairs whose points are gone, identical, or already fused are skipped; ``earlier``:
+    aliases from previous slices of the same match, to follow fused points."""
     res = FusionResult()
+    if earlier:
+        res.aliases.update(earlier)
     for k, d in zip(keep.tolist(), drop.tolist(), strict=True):
         k, d = _resolve(res.aliases, k), _resolve(res.aliases, d)
         if k == d or k not in smap.mps or d not in smap.mps:
@@ -97,6 +102,9 @@ def fuse_matched(smap: ServerMap, keep: np.ndarray, drop: np.ndarray) -> FusionR
         res.changed_kfs |= set(smap.mps[d].obs)
         smap.fuse(k, d)
         res.aliases[d] = k
+    if earlier:
+        for d in earlier:
+            res.aliases.pop(d, None)
     return res
 
 
@@ -122,7 +130,9 @@ def points_in_camera(smap: ServerMap, kf_gid: int) -> np.ndarray:
     out = np.full((len(kf.mp), 3), np.nan)
     has = np.nonzero(kf.mp >= 0)[0]
     if len(has):
-        P = np.array([smap.mps[int(g)].pos for g in kf.mp[has].tolist()])
+        mps = smap.mps
+        # concatenate of the (3,) rows is several times faster than np.array of a list.
+        P = np.concatenate([mps[g].pos for g in kf.mp[has].tolist()]).reshape(-1, 3)
         T = se3_inv(kf.T_m_kf)
         out[has] = P @ T[:3, :3].T + T[:3, 3]
     return out

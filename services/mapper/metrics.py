@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from prometheus_client import Counter, Gauge
+from prometheus_client import Counter, Gauge, Histogram
 
 CULLED = Counter("hivemap_keyframes_culled_total", "Redundant keyframes removed", ["map"])
 FEEDBACK_BYTES = Counter(
@@ -16,3 +16,8 @@ OPT_REQUESTS = Counter(
     "hivemap_optimize_requests_total", "Map copies sent to the optimizer", ["reason"]
 )
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
+LOCK_HOLD = Histogram(
+    "hivemap_map_lock_hold_seconds",
+    "How long a map's lock was held at a time (registration, fusion, matches, corrections)",
+    buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0, 2.5),
+)

@@ -304,11 +304,13 @@ class AgentHandler:
         if self.params.fuse:
             self.to_fuse.append(skf.gid)
 
-    def fuse_new(self) -> IngestResult:
-        """Duplicate-point fusion for the keyframes registered since the last call.
-        Kept out of :meth:`ingest` so it never delays an acknowledgment."""
+    def fuse_new(self, limit: int | None = None) -> IngestResult:
+        """Duplicate-point fusion for the keyframes registered since the last call (the
+        oldest ``limit`` of them). Kept out of :meth:`ingest` so it never delays an
+        acknowledgment."""
         res = IngestResult()
-        todo, self.to_fuse = self.to_fuse, []
+        n = len(self.to_fuse) if limit is None else max(limit, 0)
+        todo, self.to_fuse = self.to_fuse[:n], self.to_fuse[n:]
         for g in todo:
             skf = self.smap.kfs.get(g)
             if skf is None:

@@ -38,6 +38,7 @@ from shared.transport import Bus, Received, open_session
 from . import persist
 from .collab import Collaboration, Worker
 from .feedback import build_chunk
+from .locks import MapLock
 from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
 from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
@@ -65,7 +66,7 @@ class MapActor:
         self.svc = svc
         self.smap = smap
         self.q: queue.Queue = queue.Queue()
-        self.lock = threading.RLock()
+        self.lock = MapLock(smap.map_id)
         self.rng = random.Random(smap.map_id)
         self._cull_version = -1
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
@@ -97,32 +98,51 @@ class MapActor:
                 REJECTED.labels(SERVICE, key, "internal").inc()
                 log.exception("keyframe batch failed", extra={"agent": h.agent})
             QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
-            self._feedback()
+            # One rejection round per batch as well, not only when idle: agents that
+            # revisit a place keep adding observers to the same points, and every later
+            # keyframe, fusion and map copy pays for them. A round costs ~2 ms; when
+            # the server is busiest (8 agents in one hall) it is what keeps the map small.
+            self._cull_round()
+            # Feedback is spare-capacity work: queued batches (other agents of a merged
+            # map) are registered first; it runs once the queue is drained.
+            if self.q.empty():
+                self._feedback()
 
     def _idle(self) -> None:
         # Idle work holds the GIL for milliseconds at a time: it waits while any map has
         # a batch queued, so it never slows down another agent's registration.
         if self.svc.batches_waiting():
             return
+        # One keyframe's fusion at a time (~10-30 ms in a dense merged map), so a batch
+        # that arrives meanwhile waits for at most one of them, not for the whole backlog.
         try:
-            with self.lock:
-                self.svc.fuse(self.smap)
+            while not self.svc.batches_waiting():
+                with self.lock:
+                    if not self.svc.fuse(self.smap, max_kfs=1):
+                        break
         except Exception:
             log.exception("point fusion failed")
+        if self.svc.batches_waiting():
+            return
         # One rejection round per change of the map, not one per 50 ms poll (with 8
         # agents, idle rounds on unchanged maps took most of the mapper's CPU).
-        if self.svc.settings.mapper.redundancy and self.smap.version != self._cull_version:
-            self._cull_version = self.smap.version
-            try:
-                with self.lock:
-                    self.svc.cull(self.smap, self.rng)
-            except Exception:
-                log.exception("keyframe rejection failed")
+        if self.smap.version != self._cull_version:
+            self._cull_round()
         self._feedback()
+
+    def _cull_round(self) -> None:
+        if not self.svc.settings.mapper.redundancy:
+            return
+        self._cull_version = self.smap.version
+        try:
+            with self.lock:
+                self.svc.cull(self.smap, self.rng)
+        except Exception:
+            log.exception("keyframe rejection failed")
 
     def _feedback(self) -> None:
         try:
-            self.svc.send_feedback(self.smap)
+            self.svc.send_feedback(self.smap, should_yield=self.svc.batches_waiting)
         except Exception:
             log.exception("feedback failed")
 
@@ -251,13 +271,17 @@ class MapperService:
         """Whether any map actor has a keyframe batch queued."""
         return any(a.q.qsize() for a in list(self.actors.values()))
 
-    def fuse(self, smap: ServerMap) -> int:
+    def fuse(self, smap: ServerMap, max_kfs: int | None = None) -> int:
         """Point fusion for keyframes registered since the last call (idle work, so it
-        never sits between a batch and its ack, nor between two agents' batches)."""
+        never sits between a batch and its ack, nor between two agents' batches).
+        Returns how many keyframes were processed (at most ``max_kfs``)."""
         n = 0
         for h in [h for h in self.handlers.values() if h.smap is smap and h.to_fuse]:
-            fres = h.fuse_new()
-            n += fres.fused
+            left = None if max_kfs is None else max_kfs - n
+            if left is not None and left <= 0:
+                break
+            n += min(len(h.to_fuse), left) if left is not None else len(h.to_fuse)
+            fres = h.fuse_new(left)
             if fres.changed:
                 pipe = self.store.pipeline()
                 persist.write_result(pipe, h, fres, self.names)
@@ -283,13 +307,15 @@ class MapperService:
         for g in victims:
             kf = smap.kfs[g]
             h = by_agent.get(kf.agent)
-            observers = {o for p in kf.observed().tolist() for o in smap.mps[p].obs} - {g}
+            # Only the children get a new spanning-tree parent (observers' own point
+            # lists are untouched), so only theirs is rewritten.
+            children = list(kf.children)
             if h is not None:
                 h.on_removed(kf)
             dead = smap.remove_keyframe(g)
             if h is not None:
                 persist.write_removed_kf(pipe, h, kf, dead, self.names)
-            for o in observers:
+            for o in children:
                 if o in smap.kfs:
                     ok = smap.kfs[o]
                     pipe.hset(f"hm:kf:{ok.agent}:{ok.id}", "gparent", ok.parent)
@@ -298,12 +324,16 @@ class MapperService:
         MAP_SIZE.labels(smap.map_id).set(len(smap.kfs))
         return len(victims)
 
-    def send_feedback(self, smap: ServerMap) -> None:
+    def send_feedback(self, smap: ServerMap, should_yield=None) -> None:
+        """Map chunks to the agents of ``smap`` that are due one; ``should_yield`` is
+        asked between agents (the actor stops when batches are waiting)."""
         if self.bus is None:
             return
         m = self.settings.mapper
         now = time.monotonic()
         for h in [h for h in self.handlers.values() if h.smap is smap]:
+            if should_yield is not None and should_yield():
+                return
             if (
                 m.feedback_k <= 0
                 or now - self._fb_last.get(h.agent, -1e9) < 1.0 / m.feedback_rate_hz

@@ -12,7 +12,7 @@ def cmd_optimizer(args: argparse.Namespace, settings: Settings) -> int:
 
     from .service import OptimizerService
 
-    return run_service(OptimizerService(settings), settings)
+    return run_service(OptimizerService(settings), settings, settings.optimizer.nice)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.mapper.server_map import ServerMap
+from services.mapper.server_map import STRONG, ServerMap
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,109 @@ def oldest_keyframe(smap: ServerMap) -> int:
     return min(smap.kfs.values(), key=lambda k: (k.stamp_ns, k.gid)).gid
 
 
+@dataclass
+class MapCapture:
+    """What a snapshot needs from a live map, taken in a few milliseconds under the map's
+    lock: poses and observation index arrays copied, immutable arrays referenced. The
+    expensive part (essential graph, observation tables) is built from it off-lock by
+    :func:`build_snapshot`, so keyframe ingestion is not held up by a large copy."""
+
+    map_id: str
+    version: int
+    gids: list[int]
+    T: np.ndarray  # (K, 4, 4) copies
+    kf_mp: list[np.ndarray]  # copies (fusion rewrites them in place)
+    kf_xy: list[np.ndarray]  # never rewritten after a keyframe is made
+    kf_oct: list[np.ndarray]
+    parents: list[int]
+    covis: list[dict[int, int]]  # copies
+    loop_edges: list[set[int]]
+    points: dict  # gid -> ServerMapPoint (shallow copy; a position is replaced, not edited)
+    loops: list[tuple[int, int, np.ndarray]]
+    fixed: list[int]
+
+
+def capture_map(
+    smap: ServerMap, loops: list[tuple[int, int, np.ndarray]], fixed: list[int] | None = None
+) -> MapCapture:
+    gids = sorted(smap.kfs)
+    kfs = [smap.kfs[g] for g in gids]
+    if fixed is None:
+        fixed = [oldest_keyframe(smap)] if gids else []
+    return MapCapture(
+        map_id=smap.map_id, version=smap.version, gids=gids,
+        T=np.array([k.T_m_kf for k in kfs], np.float64).reshape(-1, 4, 4),
+        kf_mp=[k.mp.copy() for k in kfs], kf_xy=[k.xy for k in kfs],
+        kf_oct=[k.octaves for k in kfs], parents=[k.parent for k in kfs],
+        covis=[dict(smap.covis.get(g, {})) for g in gids],
+        loop_edges=[set(k.loop_edges) for k in kfs], points=dict(smap.mps),
+        loops=list(loops), fixed=list(fixed),
+    )  # fmt: skip
+
+
+def _essential_edges(cap: MapCapture) -> np.ndarray:
+    """Spanning tree + strong covisibility (ServerMap.essential_edges without its 'loop'
+    edges, which come with their measurements through ``loops``)."""
+    known = set(cap.gids)
+    edges = []
+    for g, parent, covis in zip(cap.gids, cap.parents, cap.covis, strict=True):
+        if parent in known and parent != g:
+            edges.append((min(g, parent), max(g, parent)))
+        edges.extend((g, o) for o, n in covis.items() if n >= STRONG and g < o and o in known)
+    # Tree and strong edges can name the same pair; one measurement per pair is enough.
+    return np.unique(np.array(edges, np.int64).reshape(-1, 2), axis=0)
+
+
+def build_snapshot(cap: MapCapture, fx: float = EUROC_FX) -> MapSnapshot:
+    gids = np.array(cap.gids, dtype=np.int64)
+    K = len(gids)
+    idx = {g: i for i, g in enumerate(cap.gids)}
+    edges_arr = _essential_edges(cap)
+    loops = cap.loops
+    lp = [(int(a), int(b), S) for a, b, S in loops if a in idx and b in idx and a != b]
+    if len(lp) < len(loops):
+        log.info("snapshot %s: %d loop edges name missing keyframes", cap.map_id,
+                 len(loops) - len(lp))  # fmt: skip
+    loops_arr = np.array([(a, b) for a, b, _ in lp], np.int64).reshape(-1, 2)
+    S_loop = np.array([np.asarray(S, np.float64) for _, _, S in lp]).reshape(-1, 4, 4)
+
+    mp_gids = np.array(sorted(cap.points), dtype=np.int64)
+    M = len(mp_gids)
+    pts = [cap.points[g] for g in mp_gids.tolist()]
+    mp_pos = np.array([p.pos for p in pts], np.float64).reshape(M, 3)
+    mp_ref = np.array([p.ref_kf for p in pts], np.int64)
+
+    # Observations straight from the keyframes' keypoint arrays, all keyframes at once:
+    # one searchsorted maps point gids to indices.
+    counts = np.array([len(m) for m in cap.kf_mp], np.int64)
+    okf = np.repeat(np.arange(K, dtype=np.int32), counts) if K else np.zeros(0, np.int32)
+    cat = np.concatenate
+    allmp = cat(cap.kf_mp).astype(np.int64) if K else np.zeros(0, np.int64)
+    oxy = cat([np.asarray(x, np.float64) for x in cap.kf_xy]) if K else np.zeros((0, 2))
+    ooct = cat([np.asarray(o) for o in cap.kf_oct]).astype(np.uint8) if K else np.zeros(0)
+    pos = np.searchsorted(mp_gids, allmp)
+    ok = (allmp >= 0) & (pos < M)
+    ok[ok] &= mp_gids[pos[ok]] == allmp[ok]
+    return MapSnapshot(
+        map_id=cap.map_id,
+        version=cap.version,
+        kf_gids=gids,
+        T_m_kf=cap.T,
+        fixed_gids=np.array([g for g in cap.fixed if g in idx], np.int64),
+        edges=edges_arr,
+        loops=loops_arr,
+        S_loop=S_loop,
+        mp_gids=mp_gids,
+        mp_pos=mp_pos,
+        mp_ref=mp_ref,
+        obs_kf=okf[ok],
+        obs_mp=pos[ok].astype(np.int32),
+        obs_xy=oxy[ok].reshape(-1, 2),
+        obs_octave=ooct[ok].astype(np.uint8),
+        fx=float(fx),
+    )
+
+
 def snapshot_from_map(
     smap: ServerMap,
     loops: list[tuple[int, int, np.ndarray]],
@@ -118,59 +221,4 @@ def snapshot_from_map(
     (edges naming keyframes that are no longer in the map are dropped).
     ``fixed``: gauge keyframes, the oldest keyframe when None.
     """
-    gids = np.array(sorted(smap.kfs), dtype=np.int64)
-    K = len(gids)
-    idx = {int(g): i for i, g in enumerate(gids.tolist())}
-    T = np.stack([smap.kfs[int(g)].T_m_kf for g in gids]) if K else np.zeros((0, 4, 4))
-    edges = [(a, b) for a, b, kind in smap.essential_edges() if kind != "loop"]
-    # Tree and strong edges can name the same pair; one measurement per pair is enough.
-    edges_arr = np.unique(np.array(edges, np.int64).reshape(-1, 2), axis=0)
-    lp = [(int(a), int(b), S) for a, b, S in loops if a in idx and b in idx and a != b]
-    if len(lp) < len(loops):
-        log.info("snapshot %s: %d loop edges name missing keyframes", smap.map_id,
-                 len(loops) - len(lp))  # fmt: skip
-    loops_arr = np.array([(a, b) for a, b, _ in lp], np.int64).reshape(-1, 2)
-    S_loop = np.array([np.asarray(S, np.float64) for _, _, S in lp]).reshape(-1, 4, 4)
-
-    mp_gids = np.array(sorted(smap.mps), dtype=np.int64)
-    M = len(mp_gids)
-    mp_pos = np.array([smap.mps[int(g)].pos for g in mp_gids], np.float64).reshape(M, 3)
-    mp_ref = np.array([smap.mps[int(g)].ref_kf for g in mp_gids], np.int64)
-
-    # Observations straight from the keyframes' keypoint arrays: searchsorted maps
-    # point gids to indices without a Python loop over keypoints.
-    okf, omp, oxy, ooct = [], [], [], []
-    for i, g in enumerate(gids.tolist()):
-        kf = smap.kfs[g]
-        j = np.nonzero(kf.mp >= 0)[0]
-        if not len(j):
-            continue
-        m = kf.mp[j].astype(np.int64)
-        pos = np.searchsorted(mp_gids, m)
-        ok = (pos < M) & (mp_gids[np.minimum(pos, M - 1)] == m) if M else np.zeros(len(m), bool)
-        j, pos = j[ok], pos[ok]
-        okf.append(np.full(len(j), i, np.int32))
-        omp.append(pos.astype(np.int32))
-        oxy.append(np.asarray(kf.xy, np.float64)[j])
-        ooct.append(np.asarray(kf.octaves)[j].astype(np.uint8))
-    cat = np.concatenate
-    if fixed is None:
-        fixed = [oldest_keyframe(smap)] if K else []
-    return MapSnapshot(
-        map_id=smap.map_id,
-        version=smap.version,
-        kf_gids=gids,
-        T_m_kf=T.astype(np.float64),
-        fixed_gids=np.array([g for g in fixed if g in idx], np.int64),
-        edges=edges_arr,
-        loops=loops_arr,
-        S_loop=S_loop,
-        mp_gids=mp_gids,
-        mp_pos=mp_pos,
-        mp_ref=mp_ref,
-        obs_kf=cat(okf) if okf else np.zeros(0, np.int32),
-        obs_mp=cat(omp) if omp else np.zeros(0, np.int32),
-        obs_xy=cat(oxy) if oxy else np.zeros((0, 2)),
-        obs_octave=cat(ooct) if ooct else np.zeros(0, np.uint8),
-        fx=float(fx),
-    )
+    return build_snapshot(capture_map(smap, loops, fixed), fx)

@@ -12,7 +12,7 @@ def cmd_placerec(args: argparse.Namespace, settings: Settings) -> int:
 
     from .service import PlacerecService
 
-    return run_service(PlacerecService(settings), settings)
+    return run_service(PlacerecService(settings), settings, settings.placerec.nice)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
