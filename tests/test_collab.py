@@ -221,3 +221,34 @@ def test_unknown_keyframes_in_a_match_are_rejected(redis_url):
               np.zeros(0, np.int64), 0, 0.0, 0)  # fmt: skip
     assert svc.collab.on_match(m) is None
     assert svc.collab.on_match_bytes("hivemap/match", b"\x93garbage") is None
+
+
+def test_feedback_after_a_merge_carries_what_the_agent_lacks(redis_url, world):
+    """After two maps merge, B's chunk holds A's points near B's KF_ref and none that
+    B's own newest keyframes observe (B tracks those already; a second copy at the
+    server's position would compete for the same keypoints)."""
+    from services.mapper.feedback import RECENT_KFS, build_chunk
+
+    svc = MapperService(Settings(redis_url=redis_url))
+    gts, sims = {}, {}
+    for i, (agent, seq, n) in enumerate((("A", "MH01", 700), ("B", "MH02", 160))):
+        gt = load_euroc_gt(seq)
+        gts[agent] = Trajectory(gt.stamps_ns[0:n], gt.poses[0:n])
+        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel(), seed=20 + i)
+        _feed(svc, agent, sims[agent])
+    hb = svc.handlers["B"]
+    hb.kf_ref = hb.latest_kf
+    alone = build_chunk(hb, 5, set(), 0, svc.names)
+    assert alone is None or set(alone.mp_agents) <= {"B"}
+    m = _match_from_truth(svc, sims, gts, "B", "A")
+    assert svc.collab.on_match(m) == "merge"
+    # B flies on where A has been (the match was near its newest keyframe).
+    hb.kf_ref = hb.latest_kf
+    chunk = build_chunk(hb, 5, set(), 0, svc.names)
+    assert chunk is not None and len(chunk.mp_ids) > 0
+    smap = hb.smap
+    lo, hi = hb.kf_gid(max(hb.latest_kf - RECENT_KFS, 0)), hb.kf_gid(hb.latest_kf)
+    gids = [(svc.handlers[a].index << 40) | int(i) for a, i in
+            zip(chunk.mp_agents, chunk.mp_ids.tolist(), strict=True)]  # fmt: skip
+    assert all(not any(lo <= o <= hi for o in smap.mps[g].obs) for g in gids)
+    assert "A" in chunk.kf_agents and "A" in chunk.mp_agents

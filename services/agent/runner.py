@@ -211,9 +211,13 @@ class Agent:
             log.warning("bad map chunk: %s", e)
             return
         ref = self.vo.kfs.get(c.kf_ref)
-        if ref is None or len(c.mp_ids) == 0:
+        if ref is None:
             return
+        # Counted even when empty: the server leaves out what this agent tracks already,
+        # so a lone agent's chunks often carry nothing new.
         self.stats.chunks += 1
+        if len(c.mp_ids) == 0:
+            return
         own = {i for i in self.vo.mps if i not in self.vo.foreign}
         sel = [j for j, (a, i) in enumerate(zip(c.mp_agents, c.mp_ids.tolist(), strict=True))
                if not (a == self.agent and i in own)]  # fmt: skip

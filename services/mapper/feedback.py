@@ -14,6 +14,10 @@ from shared.messages import MapChunk
 
 from .registration import AgentHandler
 
+# The agent tracks against the points of its newest 10 keyframes (VOParams.local_kfs);
+# a margin covers keyframes in flight.
+RECENT_KFS = 15
+
 
 def build_chunk(
     h: AgentHandler, k: int, sent: set[int], now_ns: int, names: dict[int, str]
@@ -23,7 +27,11 @@ def build_chunk(
     ref = smap.kfs.get(ref_g)
     if ref is None:
         return None
-    neigh = [g for g in smap.covisible(ref_g, k=k, min_weight=1)]
+    # The agent's own newest keyframes are always the most covisible with its KF_ref,
+    # and it holds them: the k sent are the most covisible of the others (another
+    # agent's keyframes here, or its own from an earlier pass).
+    lo, hi = h.kf_gid(max(h.latest_kf - RECENT_KFS, 0)), h.kf_gid(max(h.latest_kf, 0))
+    neigh = [g for g in smap.covisible(ref_g, min_weight=1) if not lo <= g <= hi][:k]
     if not neigh:
         return None
     inv_s = 1.0 / h.scale
@@ -33,6 +41,13 @@ def build_chunk(
     # runs at 2 Hz per agent on the map actor; per-keypoint Python loops cost ~10 ms).
     allmp = np.concatenate([kf.mp for kf in kfs])
     allmp = allmp[allmp >= 0]
+    # Points the agent's own newest keyframes observe are in its tracking map already
+    # (its own, or another agent's it associated): a second copy at the server's slightly
+    # different position would compete with the first for the same keypoints. The rest
+    # (other agents' points, places it saw long ago) is what the agent lacks.
+    held = np.fromiter((any(lo <= o <= hi for o in smap.mps[g].obs) for g in allmp.tolist()),
+                       dtype=bool, count=len(allmp))  # fmt: skip
+    allmp = allmp[~held]
     uniq, first = np.unique(allmp, return_index=True)
     order = np.argsort(first, kind="stable")
     mp_gids = uniq[order]
@@ -51,8 +66,10 @@ def build_chunk(
             kp.append(kf.keypoints.astype(np.float32))
             desc.append(kf.descriptors.astype(np.uint8))
             i = np.full(len(kf.mp), -1, np.int64)
-            has = kf.mp >= 0
-            i[has] = rank[np.searchsorted(uniq, kf.mp[has])]
+            pos = np.searchsorted(uniq, kf.mp)
+            has = (kf.mp >= 0) & (pos < len(uniq))
+            has[has] &= uniq[pos[has]] == kf.mp[has]
+            i[has] = rank[pos[has]]
             idx.append(i)
             sent.add(kf.gid)
     # Agent of each point from its gid's high bits, looked up once per agent.
