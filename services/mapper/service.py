@@ -13,7 +13,13 @@ only fills its own map's queue.
 
 Every batch is stored in one MULTI/EXEC transaction before its ack is sent, so an
 ack always means "stored". On start, maps and handlers are rebuilt from Redis.
-Idle actors run redundant-keyframe rejection (CCM-SLAM §4.6) and send feedback.
+
+Between batches an actor runs one redundant-keyframe rejection round (CCM-SLAM §4.6):
+agents revisiting a place keep adding observers to the same points, and every later
+keyframe pays for them, so culling keeps pace with insertion. Point fusion and
+feedback are spare-capacity work, done a keyframe / an agent at a time while no batch
+is queued. Collaboration work on a map (copies, corrections, loop fusion) takes the
+same lock in short holds (see ``collab``).
 """
 
 from __future__ import annotations
