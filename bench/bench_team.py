@@ -13,6 +13,7 @@ and correction, so the report can say:
   arrived while an optimization was running, and of all others.
 
     .venv/bin/python bench/bench_team.py [--only team3,team5,seeds,feedback] [--frames A:B]
+        [--name team]    (feedback = feedback_on + feedback_off; each can run alone)
 """
 
 from __future__ import annotations
@@ -211,8 +212,11 @@ def main() -> int:
     if "seeds" in only:
         # The same flights in two different worlds: nothing may match across them.
         runs["seeds"] = team(["MH01", "MH02"], [0, 1], args.frames)
-    if "feedback" in only:
+    # Without feedback the agents' VO is deterministic (the same online ATE run after
+    # run), so "feedback_on" alone can be compared with an earlier "feedback_off".
+    if "feedback" in only or "feedback_on" in only:
         runs["feedback_on"] = team(["MH01", "MH02"], [0, 0], args.frames, feedback=True)
+    if "feedback" in only or "feedback_off" in only:
         runs["feedback_off"] = team(["MH01", "MH02"], [0, 0], args.frames, feedback=False)
     path = write_report(args.name, {"runs": runs})
     rows = []

@@ -252,3 +252,17 @@ def test_feedback_after_a_merge_carries_what_the_agent_lacks(redis_url, world):
             zip(chunk.mp_agents, chunk.mp_ids.tolist(), strict=True)]  # fmt: skip
     assert all(not any(lo <= o <= hi for o in smap.mps[g].obs) for g in gids)
     assert "A" in chunk.kf_agents and "A" in chunk.mp_agents
+    # Map -> KF_ref (agent units) fitted on B's newest keyframes agrees with B's Sim(3)
+    # from its local map into the merged one (no drift here, so both are right).
+    from services.mapper.feedback import map_to_agent_ref
+
+    ref = smap.kfs[hb.kf_gid(hb.kf_ref)]
+    R, t, s = map_to_agent_ref(hb, ref, lo, hi)
+    T_ref_m = se3_inv(ref.T_m_kf)
+    assert abs(s * hb.scale - 1) < 0.02
+    assert np.linalg.norm(R - T_ref_m[:3, :3]) < 0.02
+    assert s != 1.0 / hb.scale  # the fit, not the fallback
+    p_m = smap.mps[gids[0]].pos
+    expect = (T_ref_m[:3, :3] @ p_m + T_ref_m[:3, 3]) / hb.scale
+    tol = 0.02 * np.linalg.norm(p_m - ref.T_m_kf[:3, 3]) / hb.scale
+    np.testing.assert_allclose(s * R @ p_m + t, expect, atol=tol)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.geometry import scale_translation, se3_inv, transform_points
+from shared.geometry import se3_inv
 from shared.messages import MapChunk
 
 from .registration import AgentHandler
@@ -17,6 +17,53 @@ from .registration import AgentHandler
 # The agent tracks against the points of its newest 10 keyframes (VOParams.local_kfs);
 # a margin covers keyframes in flight.
 RECENT_KFS = 15
+MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
+
+
+def map_to_agent_ref(
+    h: AgentHandler, ref, lo: int, hi: int
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) with ``p_ref = s R p_m + t``: map coordinates into KF_ref's camera frame
+    in the agent's local units.
+
+    Fitted on the agent's own newest keyframes, whose poses the server holds both in the
+    map (``T_m_kf``) and as the agent sent them (``T_l_kf``): rotation by chordal mean,
+    scale from the spread of their centres. Around KF_ref this is the agent's frame as
+    its tracking sees it; the handler's global scale (a filtered VO/map ratio) and
+    KF_ref's map pose alone are each off by the map's local corrections. Without enough
+    baseline among them, those are used."""
+    smap = h.smap
+    kfs = [smap.kfs[g] for g in range(lo, hi + 1) if g in smap.kfs]
+    T_l_ref = ref.T_l_kf
+    if len(kfs) >= 4:
+        M = sum(k.T_l_kf[:3, :3] @ k.T_m_kf[:3, :3].T for k in kfs)
+        U, _, Vt = np.linalg.svd(M)
+        R_lm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        c_m = np.array([k.T_m_kf[:3, 3] for k in kfs])
+        c_l = np.array([k.T_l_kf[:3, 3] for k in kfs])
+        d_m = np.linalg.norm((c_m - c_m.mean(0)) @ R_lm.T, axis=1).sum()
+        d_l = np.linalg.norm(c_l - c_l.mean(0), axis=1).sum()
+        obs = ref.mp[ref.mp >= 0][:200].tolist()
+        depth = np.median([np.linalg.norm(smap.mps[g].pos - ref.T_m_kf[:3, 3])
+                           for g in obs if g in smap.mps] or [np.inf])  # fmt: skip
+        s_lm = d_l / d_m if d_m > 1e-12 else 0.0
+        # Enough baseline (mean spread >= MIN_SPREAD of the scene depth), and no more than
+        # 20 % from the handler's scale (anything further is a broken fit, not drift).
+        if d_m / len(kfs) >= MIN_SPREAD * depth and abs(s_lm * h.scale - 1.0) < 0.2:
+            t_lm = c_l.mean(0) - s_lm * R_lm @ c_m.mean(0)
+            # p_ref = T_ref_l (s R_lm p_m + t_lm)
+            R_rl, t_rl = T_l_ref[:3, :3].T, -T_l_ref[:3, :3].T @ T_l_ref[:3, 3]
+            return R_rl @ R_lm, R_rl @ t_lm + t_rl, float(s_lm)
+    T_ref_m = se3_inv(ref.T_m_kf)
+    inv_s = 1.0 / h.scale
+    return T_ref_m[:3, :3], T_ref_m[:3, 3] * inv_s, inv_s
+
+
+def _pose_in(R: np.ndarray, t: np.ndarray, s: float, T_m_kf: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R @ T_m_kf[:3, :3]
+    T[:3, 3] = s * R @ T_m_kf[:3, 3] + t
+    return T
 
 
 def build_chunk(
@@ -34,8 +81,7 @@ def build_chunk(
     neigh = [g for g in smap.covisible(ref_g, min_weight=1) if not lo <= g <= hi][:k]
     if not neigh:
         return None
-    inv_s = 1.0 / h.scale
-    T_ref_m = se3_inv(ref.T_m_kf)
+    R_a, t_a, s_a = map_to_agent_ref(h, ref, lo, hi)
     kfs = [smap.kfs[g] for g in neigh]
     # Points in order of first appearance over the keyframes, found with numpy (this
     # runs at 2 Hz per agent on the map actor; per-keypoint Python loops cost ~10 ms).
@@ -55,7 +101,7 @@ def build_chunk(
     rank[order] = np.arange(len(uniq))
     pts = [smap.mps[g] for g in mp_gids.tolist()]
     pos = np.concatenate([p.pos for p in pts]).reshape(-1, 3) if pts else np.zeros((0, 3))
-    p_ref = transform_points(T_ref_m, pos) * inv_s
+    p_ref = s_a * pos @ R_a.T + t_a
     kp, desc, idx = [], [], []
     for kf in kfs:
         if kf.gid in sent:
@@ -80,7 +126,7 @@ def build_chunk(
         agent=h.agent, map_id=smap.map_id, kf_ref=h.kf_ref,
         kf_agents=[kf.agent for kf in kfs],
         kf_ids=np.array([kf.id for kf in kfs], np.int64),
-        T_ref_kf=np.stack([scale_translation(T_ref_m @ kf.T_m_kf, inv_s) for kf in kfs]),
+        T_ref_kf=np.stack([_pose_in(R_a, t_a, s_a, kf.T_m_kf) for kf in kfs]),
         kf_keypoints=kp, kf_descriptors=desc, kf_mp_index=idx,
         # Point ids are agent-local: the agent index (high bits) names their agent.
         mp_agents=mp_agents,
