@@ -28,6 +28,7 @@ class VOParams:
     n_features: int = 1000
     window: int = 7  # keyframes in local BA
     local_kfs: int = 10  # keyframes whose points are searched while tracking
+    foreign_gate_px: float = 1.5  # server points must reproject this well (see _gate_foreign)
     search_radius: float = 12.0
     min_inliers: int = 40
     kf_min_frames: int = 4
@@ -214,6 +215,7 @@ class VisualOdometry:
             r2 = solve_pnp(P[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
             if r2.ok and r2.inliers.sum() >= res.inliers.sum() * 0.8:
                 res, pi, kp = r2, pi2, kp2
+        res, pi, kp = self._gate_foreign(f, res, pids, pi, kp, P)
         for i in pids[seen].tolist():
             self.mps[i].visible += 1
         inl = res.inliers
@@ -244,6 +246,37 @@ class VisualOdometry:
             self.frames_since_kf = 0
             out.map_s = time.perf_counter() - t
         return out
+
+    def _gate_foreign(self, f: Features, res, pids, pi, kp, P):
+        """Server points count only where they agree with the agent's own. They sit in
+        the agent's frame through KF_ref and a fitted similarity, so where the two maps
+        still differ (before a correction reaches both, or past the fit's reach) they are
+        off coherently, and RANSAC would keep them as inliers of a compromise pose. With
+        enough own matches the pose comes from those, and a server point stays only if it
+        reprojects within ``foreign_gate_px`` there; with few own matches (a place only
+        another agent mapped) all are used, which is where the server's map helps."""
+        if not self.foreign or not len(pi):
+            return res, pi, kp
+        fr = np.fromiter((i in self.foreign for i in pids[pi].tolist()), bool, count=len(pi))
+        own = ~fr
+        if not fr.any() or own.sum() < 2 * self.p.min_inliers:
+            return res, pi, kp
+        r_own = solve_pnp(P[pi[own]], f.xy[kp[own]], self.cam.fx, T_guess=res.T_w_c)
+        if not r_own.ok or r_own.inliers.sum() < 2 * self.p.min_inliers:
+            return res, pi, kp
+        T = r_own.T_w_c
+        Xc = (P[pi[fr]] - T[:3, 3]) @ T[:3, :3]
+        z = np.maximum(Xc[:, 2], 1e-6)
+        err = np.linalg.norm(Xc[:, :2] / z[:, None] - f.xy[kp[fr]], axis=1) * self.cam.fx
+        keep = own.copy()
+        keep[np.nonzero(fr)[0][err < self.p.foreign_gate_px]] = True
+        if keep.all():
+            return res, pi, kp
+        pi, kp = pi[keep], kp[keep]
+        r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T)
+        if r.ok and r.inliers.sum() >= self.p.min_inliers:
+            return r, pi, kp
+        return r_own, pi[own[keep]], kp[own[keep]]
 
     def _need_kf(self, n_in: int) -> bool:
         n = self.frames_since_kf
