@@ -91,9 +91,9 @@ def build_chunk(
     # (its own, or another agent's it associated): a second copy at the server's slightly
     # different position would compete with the first for the same keypoints. The rest
     # (other agents' points, places it saw long ago) is what the agent lacks.
-    held = np.fromiter((any(lo <= o <= hi for o in smap.mps[g].obs) for g in allmp.tolist()),
-                       dtype=bool, count=len(allmp))  # fmt: skip
-    allmp = allmp[~held]
+    mine = [smap.kfs[g].mp for g in range(lo, hi + 1) if g in smap.kfs]
+    if mine:
+        allmp = allmp[~np.isin(allmp, np.concatenate(mine))]
     uniq, first = np.unique(allmp, return_index=True)
     order = np.argsort(first, kind="stable")
     mp_gids = uniq[order]

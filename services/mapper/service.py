@@ -14,9 +14,10 @@ only fills its own map's queue.
 Every batch is stored in one MULTI/EXEC transaction before its ack is sent, so an
 ack always means "stored". On start, maps and handlers are rebuilt from Redis.
 
-Between batches an actor runs one redundant-keyframe rejection round (CCM-SLAM §4.6):
-agents revisiting a place keep adding observers to the same points, and every later
-keyframe pays for them, so culling keeps pace with insertion. Point fusion and
+Redundant-keyframe rejection (CCM-SLAM §4.6) runs when an actor is idle and, in a map
+several agents share, one round between batches: agents flying the same place keep
+adding observers to the same points, and every later keyframe pays for them, so there
+culling keeps pace with insertion. Point fusion and
 feedback are spare-capacity work, done a keyframe / an agent at a time while no batch
 is queued. Collaboration work on a map (copies, corrections, loop fusion) takes the
 same lock in short holds (see ``collab``).
@@ -104,11 +105,13 @@ class MapActor:
                 REJECTED.labels(SERVICE, key, "internal").inc()
                 log.exception("keyframe batch failed", extra={"agent": h.agent})
             QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
-            # One rejection round per batch as well, not only when idle: agents that
-            # revisit a place keep adding observers to the same points, and every later
-            # keyframe, fusion and map copy pays for them. A round costs ~2 ms; when
-            # the server is busiest (8 agents in one hall) it is what keeps the map small.
-            self._cull_round()
+            # In a map several agents share, one rejection round per batch as well, not
+            # only when idle: agents flying the same place keep adding observers to the
+            # same points, and every later keyframe, fusion and map copy pays for them.
+            # When such a map is busiest (8 agents in one hall) idle time never comes,
+            # and this is what keeps it small. A one-agent map culls when idle.
+            if self._shared():
+                self._cull_round()
             # Feedback is spare-capacity work: queued batches (other agents of a merged
             # map) are registered first; it runs once the queue is drained.
             if self.q.empty():
@@ -135,6 +138,14 @@ class MapActor:
         if self.smap.version != self._cull_version:
             self._cull_round()
         self._feedback()
+
+    def _shared(self) -> bool:
+        agents = 0
+        for h in list(self.svc.handlers.values()):
+            agents += h.smap is self.smap
+            if agents > 1:
+                return True
+        return False
 
     def _cull_round(self) -> None:
         if not self.svc.settings.mapper.redundancy:
