@@ -26,6 +26,7 @@ Holds over 200 ms are logged and histogrammed (``locks.MapLock``).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -45,7 +46,7 @@ from shared.messages import (
     OptimizeRequest,
     packb,
 )
-from shared.metrics import REJECTED
+from shared.metrics import MAP_SIZE, REJECTED
 from shared.store import P, k_agent, k_kf, k_map, k_map_kfs
 
 from . import persist
@@ -58,7 +59,7 @@ from .merge import (
     points_in_camera,
     relative_sim3,
 )
-from .metrics import CORRECTIONS, MATCHES, MERGES, OPT_REQUESTS
+from .metrics import CORRECTIONS, MAP_POINTS, MATCHES, MERGES, OPT_REQUESTS, QUEUE_DEPTH
 
 if TYPE_CHECKING:
     from .service import MapperService
@@ -276,6 +277,10 @@ class Collaboration:
                 lk.release()
         MATCHES.labels("merge").inc()
         MERGES.inc()
+        for g in (MAP_SIZE, MAP_POINTS, QUEUE_DEPTH):
+            # A retired map's gauges would report its last size forever.
+            with contextlib.suppress(KeyError):
+                g.remove(source.map_id)
         if svc.bus is not None:
             note = MapMerged(source.map_id, target.map_id, S_t_s.matrix(), time.time_ns())
             svc.bus.put(keys.map_merged(source.map_id), note.encode())
