@@ -31,11 +31,14 @@ class MapLock:
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         ok = self._lock.acquire(blocking, timeout)
         if ok:
-            self._depth += 1
-            if self._depth == 1:
-                self._t0 = time.perf_counter()
-                self._who = sys._getframe(1).f_code.co_name
+            self._took(sys._getframe(1).f_code.co_name)
         return ok
+
+    def _took(self, who: str) -> None:
+        self._depth += 1
+        if self._depth == 1:
+            self._t0 = time.perf_counter()
+            self._who = who
 
     def release(self) -> None:
         self._depth -= 1
@@ -51,12 +54,8 @@ class MapLock:
         self._lock.release()
 
     def __enter__(self) -> MapLock:
-        ok = self._lock.acquire()
-        if ok:
-            self._depth += 1
-            if self._depth == 1:
-                self._t0 = time.perf_counter()
-                self._who = sys._getframe(1).f_code.co_name
+        self._lock.acquire()
+        self._took(sys._getframe(1).f_code.co_name)
         return self
 
     def __exit__(self, *exc) -> None:
