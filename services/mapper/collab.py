@@ -192,7 +192,7 @@ class Collaboration:
             add_loop_edge(smap, q, c)
             lc = LoopConstraint(q, c, m.S_q_c.copy())
             self.loops.setdefault(map_id, []).append(lc)
-            self._persist(map_id, {}, {q, c}, [lc])
+            self._persist(map_id, {}, set(), [lc])  # loop edges live in the loops hash
         finally:
             for lk in reversed(locks):
                 lk.release()
