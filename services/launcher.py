@@ -21,6 +21,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.runtime import set_priority
 from shared.redis_server import RedisServer, free_port
 from shared.settings import Settings
 
@@ -134,7 +135,7 @@ class Stack:
             "HIVEMAP_REDIS_URL": self.settings.redis_url,
             **(env or {}),
         }
-        pre = (lambda: os.nice(nice)) if nice > 0 else None
+        pre = (lambda: set_priority(nice)) if nice > 0 else None
         proc = subprocess.Popen(_hivemap_exe() + argv, env=e, start_new_session=True,
                                 preexec_fn=pre)  # fmt: skip
         self.procs.append((name, proc))

@@ -4,6 +4,7 @@ subscriber hangs at exit otherwise)."""
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import signal
@@ -22,16 +23,40 @@ class Service(Protocol):
 log = logging.getLogger(__name__)
 
 
-def lower_priority(niceness: int) -> int:
-    """Raise this process's niceness by ``niceness`` (background services: place
-    recognition, optimization). Set in-process so `hivemap up` and compose match."""
+def set_priority(niceness: int) -> str | None:
+    """Raise this process's niceness by ``niceness``; returns why it could not, or None.
+
+    Linux with autogroup scheduling (the default on desktop and most server kernels)
+    shares the CPU fairly between sessions first and applies nice only inside one: a
+    service started in a session of its own (``hivemap up`` starts each so) would get
+    as much CPU as the mapper whatever its nice value. So a session leader also sets
+    its autogroup's nice, which is what ranks it against the other services. Safe to
+    call between fork and exec (no logging, no locks)."""
     if niceness <= 0:
-        return os.nice(0)
+        return None
     try:
-        return os.nice(niceness)
+        new = os.nice(niceness)
     except OSError as e:
-        log.warning("could not lower priority by %d: %s", niceness, e)
-        return os.nice(0)
+        return f"nice: {e}"
+    if os.getsid(0) != os.getpid():
+        return None  # the session is shared (a shell's): its group is not ours to change
+    try:
+        with open("/proc/self/autogroup", "w") as f:
+            f.write(str(new))
+    except OSError as e:
+        # No autogroup (kernel without it, or containers where the file is read-only):
+        # plain nice is then what the scheduler uses.
+        return None if e.errno == errno.ENOENT else f"autogroup: {e}"
+    return None
+
+
+def lower_priority(niceness: int) -> int:
+    """Background services (place recognition, optimization) yield the CPU to the
+    mapper. Set in-process so `hivemap up` and compose match."""
+    err = set_priority(niceness)
+    if err is not None:
+        log.warning("could not lower priority by %d: %s", niceness, err)
+    return os.nice(0)
 
 
 def run_service(svc: Service, settings: Settings, niceness: int = 0) -> int:
