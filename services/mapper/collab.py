@@ -99,7 +99,7 @@ class Collaboration:
         self._copy_s: dict[str, float] = {}
         self._corr_s: dict[str, float] = {}
         self.opt_share = opt_share
-        self.persist_chunk = 4000  # points per stored slice of a correction
+        self.persist_chunk = 2000  # points per stored slice of a correction
         self.loop_fuse_max = 100  # matched point pairs fused per loop
         self.fuse_slice = 10  # pairs fused per hold of the map's lock
         # Poses each optimization request was made from, by (map, version): a correction
@@ -211,6 +211,7 @@ class Collaboration:
         mp_q, mp_c = m.mp_q[keep], m.mp_c[keep]
         aliases: dict[int, int] = {}
         for i in range(0, len(mp_q), self.fuse_slice):
+            self.svc.wait_for_batches()
             for _ in range(len(self.merged_into)):  # merged away meanwhile: follow it
                 if map_id not in self.merged_into:
                     break
@@ -359,12 +360,13 @@ class Collaboration:
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
         with self._opt_lock:
+            svc.wait_for_batches()
             with svc.actor(map_id).lock:
                 loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                          if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                 cap = capture_map(smap, loops)
             t1 = time.perf_counter()
-            snap = build_snapshot(cap)
+            snap = build_snapshot(cap, pause=svc.wait_for_batches)
         t2 = time.perf_counter()
         req = OptimizeRequest(
             map_id, snap.version, reason, time.time_ns(), float(snap.fx), snap.kf_gids,
@@ -422,6 +424,7 @@ class Collaboration:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
         t0 = time.perf_counter()
         with self._opt_lock:
+            svc.wait_for_batches()
             with svc.actor(c.map_id).lock:
                 res = apply_correction(smap, corr, snap_poses)
                 changed_kfs = res.kfs | res.kfs_propagated
@@ -454,6 +457,7 @@ class Collaboration:
         lock = svc.actor(map_id).lock
         n_kf, n_mp = self.persist_chunk // 20, self.persist_chunk
         while kfs or mps:
+            svc.wait_for_batches()
             kf_part, kfs = kfs[:n_kf], kfs[n_kf:]
             mp_part, mps = (mps[:n_mp], mps[n_mp:]) if not kf_part else ([], mps)
             with lock:

@@ -141,16 +141,24 @@ def apply_correction(
             mp.pos = pos[i]
             in_corr.append(m)
     res.mps.update(in_corr)
+    # The rest move with their reference keyframe's correction, grouped by correction
+    # (keyframes carried along share their anchor's) so each group is one matrix
+    # product: a 3x3 product per point cost ~0.2 s of lock hold per 100k points.
+    groups: dict[int, tuple[np.ndarray, list]] = {}
     for m in mps.keys() - res.mps:
         mp = mps[m]
         Cr = C.get(mp.ref_kf)
         if Cr is None:
             # Reference gone or unanchored: any corrected observer will do.
             Cr = next((C[o] for o in mp.obs if o in C), None)
-        if Cr is None:
-            continue
-        mp.pos = Cr[:3, :3] @ mp.pos + Cr[:3, 3]
-        res.mps.add(m)
+            if Cr is None:
+                continue
+        groups.setdefault(id(Cr), (Cr, []))[1].append(mp)
+    for Cr, grp in groups.values():
+        P = np.array([mp.pos for mp in grp], np.float64).reshape(-1, 3)
+        for mp, p in zip(grp, P @ Cr[:3, :3].T + Cr[:3, 3], strict=True):
+            mp.pos = p
+        res.mps.update(mp.gid for mp in grp)
 
     for g, T in new_T.items():
         smap.kfs[g].T_m_kf = T

@@ -25,6 +25,7 @@ same lock in short holds (see ``collab``).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import random
@@ -53,6 +54,9 @@ from .server_map import ServerMap, digest
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
+CULL_EVERY = 4  # batches between rejection rounds while a shared map's queue is full
+EVENT_MAX_DELAY_S = 0.5  # keyframe events wait at most this long behind queued batches
+EVENTS_PER_BATCH = 4
 
 
 def initial_map_id(agent: str) -> str:
@@ -76,6 +80,9 @@ class MapActor:
         self.lock = MapLock(smap.map_id)
         self.rng = random.Random(smap.map_id)
         self._cull_version = -1
+        self._batches = 0
+        self.events: list[tuple[str, int]] = []  # (map, keyframe) for place recognition
+        self._events_since = 0.0
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
         self.retired_into: str | None = None  # set when this map was merged into another
 
@@ -88,6 +95,7 @@ class MapActor:
             try:
                 h, batch, recv_ns, key = self.q.get(timeout=0.05)
             except queue.Empty:
+                self._publish_events(force=True)
                 if self.retired_into is not None:
                     return  # merged away and drained
                 self._idle()
@@ -105,17 +113,50 @@ class MapActor:
                 REJECTED.labels(SERVICE, key, "internal").inc()
                 log.exception("keyframe batch failed", extra={"agent": h.agent})
             QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
-            # In a map several agents share, one rejection round per batch as well, not
-            # only when idle: agents flying the same place keep adding observers to the
-            # same points, and every later keyframe, fusion and map copy pays for them.
-            # When such a map is busiest (8 agents in one hall) idle time never comes,
-            # and this is what keeps it small. A one-agent map culls when idle.
-            if self._shared():
+            self._batches += 1
+            # Keyframe events for place recognition wait while batches are queued (a
+            # burst's acks go first), but not past EVENT_MAX_DELAY_S.
+            self._publish_events(force=self.q.empty())
+            # In a map several agents share, rejection rounds run between batches as
+            # well, not only when idle: agents flying the same place keep adding observers
+            # to the same points, and every later keyframe, fusion and map copy pays for
+            # them. When such a map is busiest (8 agents in one hall) idle time never
+            # comes, and this is what keeps it small: a round after every batch that
+            # empties the queue, and after every CULL_EVERY-th one during a burst. A
+            # one-agent map culls when idle.
+            if self._shared() and (self.q.empty() or self._batches % CULL_EVERY == 0):
                 self._cull_round()
             # Feedback is spare-capacity work: queued batches (other agents of a merged
             # map) are registered first; it runs once the queue is drained.
             if self.q.empty():
                 self._feedback()
+
+    def _publish_events(self, force: bool = False) -> None:
+        """Keyframe events of the batches registered so far, under the map's lock (an
+        event carries the keyframe's points as they are now). ``force=False`` defers
+        them while batches wait, up to EVENT_MAX_DELAY_S."""
+        if not self.events:
+            return
+        if not force and time.monotonic() - self._events_since < EVENT_MAX_DELAY_S:
+            return
+        # Overdue during a burst: a few per batch (each is ~4 ms), oldest first.
+        n = len(self.events) if self.q.empty() else EVENTS_PER_BATCH
+        events, self.events = self.events[:n], self.events[n:]
+        merged = self.svc.collab.merged_into
+        by_map: dict[str, list[int]] = {}
+        for map_id, g in events:
+            for _ in range(len(merged)):  # merged away since: the keyframe moved along
+                if map_id not in merged:
+                    break
+                map_id = merged[map_id]
+            by_map.setdefault(map_id, []).append(g)
+        try:
+            for map_id, gids in by_map.items():
+                if map_id in self.svc.maps:
+                    with self.svc.actor(map_id).lock:
+                        self.svc.collab.publish_events(map_id, gids)
+        except Exception:
+            log.exception("keyframe events failed")
 
     def _idle(self) -> None:
         # Idle work holds the GIL for milliseconds at a time: it waits while any map has
@@ -272,7 +313,15 @@ class MapperService:
                   np.array(held, np.int64), np.array(missing, np.int64))  # fmt: skip
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
-            self.collab.publish_events(h.map_id, res.new_kfs)
+            if res.new_kfs:
+                a = self.actors.get(h.map_id)
+                if a is None or not a.thread.is_alive():
+                    self.collab.publish_events(h.map_id, res.new_kfs)
+                else:
+                    # Published by the actor after the batch (see MapActor._publish_events).
+                    if not a.events:
+                        a._events_since = time.monotonic()
+                    a.events.extend((h.map_id, g) for g in res.new_kfs)
         now_ns = time.time_ns()
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
@@ -287,6 +336,17 @@ class MapperService:
     def batches_waiting(self) -> bool:
         """Whether any map actor has a keyframe batch queued."""
         return any(a.q.qsize() for a in list(self.actors.values()))
+
+    def wait_for_batches(self, max_s: float = 1.0) -> None:
+        """Background work (map copies, corrections, loop fusion) calls this between
+        its steps: it sleeps while keyframe batches are queued, so the actors have the
+        GIL to themselves then. A lock alone would not do it: a thread that releases the
+        map's lock and takes it again at once usually wins over the actor it woke, and a
+        CPU-bound thread off the lock still takes half the GIL. ``max_s`` bounds the
+        wait, so background work still progresses under sustained load."""
+        end = time.monotonic() + max_s
+        while self.batches_waiting() and time.monotonic() < end:
+            time.sleep(0.002)
 
     def fuse(self, smap: ServerMap, max_kfs: int | None = None) -> int:
         """Point fusion for keyframes registered since the last call (idle work, so it
@@ -462,15 +522,24 @@ class MapperService:
                     log.exception("optimization request failed", extra={"map": map_id})
 
     def _pose_worker(self) -> None:
+        """Poses are best effort and only an agent's newest one is kept: what queued up
+        while keyframe batches had the GIL is coalesced to one per agent (8 agents send
+        160 a second, each a Redis round trip)."""
         while not self._stop.is_set():
             try:
-                item: Received = self.pose_q.get(timeout=0.2)
+                items: list[Received] = [self.pose_q.get(timeout=0.2)]
             except queue.Empty:
                 continue
-            try:
-                self.process_pose_bytes(item.key, item.payload, item.recv_ns)
-            except Exception:
-                log.exception("pose failed", extra={"key": item.key})
+            self.wait_for_batches(max_s=0.1)
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    items.append(self.pose_q.get_nowait())
+            newest = {it.key: it for it in items}
+            for item in newest.values():
+                try:
+                    self.process_pose_bytes(item.key, item.payload, item.recv_ns)
+                except Exception:
+                    log.exception("pose failed", extra={"key": item.key})
 
     def stop(self) -> None:
         self._stop.set()

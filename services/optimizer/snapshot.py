@@ -158,11 +158,15 @@ def _essential_edges(cap: MapCapture) -> np.ndarray:
     return np.unique(np.array(edges, np.int64).reshape(-1, 2), axis=0)
 
 
-def build_snapshot(cap: MapCapture, fx: float = EUROC_FX) -> MapSnapshot:
+def build_snapshot(cap: MapCapture, fx: float = EUROC_FX, pause=None) -> MapSnapshot:
+    """``pause``: called between the steps (each ~0.1 s for a 1500-keyframe map) so the
+    mapper can give its actors the GIL meanwhile."""
+    pause = pause or (lambda: None)
     gids = np.array(cap.gids, dtype=np.int64)
     K = len(gids)
     idx = {g: i for i, g in enumerate(cap.gids)}
     edges_arr = _essential_edges(cap)
+    pause()
     loops = cap.loops
     lp = [(int(a), int(b), S) for a, b, S in loops if a in idx and b in idx and a != b]
     if len(lp) < len(loops):
@@ -176,6 +180,7 @@ def build_snapshot(cap: MapCapture, fx: float = EUROC_FX) -> MapSnapshot:
     pts = [cap.points[g] for g in mp_gids.tolist()]
     mp_pos = np.array([p.pos for p in pts], np.float64).reshape(M, 3)
     mp_ref = np.array([p.ref_kf for p in pts], np.int64)
+    pause()
 
     # Observations straight from the keyframes' keypoint arrays, all keyframes at once:
     # one searchsorted maps point gids to indices.
@@ -185,6 +190,7 @@ def build_snapshot(cap: MapCapture, fx: float = EUROC_FX) -> MapSnapshot:
     allmp = cat(cap.kf_mp).astype(np.int64) if K else np.zeros(0, np.int64)
     oxy = cat([np.asarray(x, np.float64) for x in cap.kf_xy]) if K else np.zeros((0, 2))
     ooct = cat([np.asarray(o) for o in cap.kf_oct]).astype(np.uint8) if K else np.zeros(0)
+    pause()
     pos = np.searchsorted(mp_gids, allmp)
     ok = (allmp >= 0) & (pos < M)
     ok[ok] &= mp_gids[pos[ok]] == allmp[ok]
