@@ -131,6 +131,8 @@ def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dic
             "median_ms": 1e3 * st["ack_latency_median_s"],
             "p95_ms": 1e3 * st["ack_latency_p95_s"],
             "mapper_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
+            "mapper_median_ms": 1e3 * hist_quantile(
+                metrics, "hivemap_keyframe_latency_seconds", f'agent="{agent}"', 0.5),
             "mapper_p95_ms": 1e3 * hist_quantile(
                 metrics, "hivemap_keyframe_latency_seconds", f'agent="{agent}"', 0.95),
             "culled_total": sum(v for k, v in metrics.items()
@@ -220,11 +222,22 @@ def main() -> int:
         print("services:", rows[0]["services"], "load 1m before/after:", loads)
         one = [r for r in rows if r["agents"] == 1]
         eight = [r for r in rows if r["agents"] > 1]
+        # The issue's latency is the mapper's: received -> registered, stored and acked
+        # (its histogram). The agents' publish -> ack round trip is reported beside it;
+        # it adds the network and, here, the simulated fleet's own process, which runs
+        # at nice 10 on the server's two cores.
         report["latency_pass"] = {
-            "one_agent": all(r["median_ms"] <= 30 and r["p95_ms"] <= 100 for r in one),
-            "eight_agents_p95_max_ms": max((r["p95_ms"] for r in eight), default=None),
-            "eight_agents": all(r["p95_ms"] <= 200 for r in eight),
-        }
+            "one_agent": all(r["mapper_median_ms"] <= 30 and r["mapper_p95_ms"] <= 100
+                             for r in one),
+            "eight_agents_mapper_p95_max_ms": max((r["mapper_p95_ms"] for r in eight),
+                                                  default=None),
+            "eight_agents": all(r["mapper_p95_ms"] <= 200 for r in eight),
+            "one_agent_round_trip": all(r["median_ms"] <= 30 and r["p95_ms"] <= 100
+                                        for r in one),
+            "eight_agents_round_trip_p95_max_ms": max((r["p95_ms"] for r in eight),
+                                                      default=None),
+            "eight_agents_round_trip": all(r["p95_ms"] <= 200 for r in eight),
+        }  # fmt: skip
         print(report["latency_pass"])
     if args.only in ("", "scale"):
         report["scale"] = run_scale()
