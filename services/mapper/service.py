@@ -427,6 +427,10 @@ class MapperService:
             FEEDBACK_BYTES.labels(h.agent).inc(len(data))
 
     def process_pose_bytes(self, key: str, payload: bytes, recv_ns: int) -> dict | None:
+        p = self.decode_pose(key, payload)
+        return None if p is None else self.store_pose(p, recv_ns)
+
+    def decode_pose(self, key: str, payload: bytes) -> PoseUpdate | None:
         agent_key = keys.agent_of(key) or "?"
         try:
             p = PoseUpdate.decode(payload)
@@ -436,6 +440,9 @@ class MapperService:
             REJECTED.labels(SERVICE, key, _reason(e)).inc()
             log.warning("rejected pose on %s: %s", key, e, extra={"key": key})
             return None
+        return p
+
+    def store_pose(self, p: PoseUpdate, recv_ns: int) -> dict | None:
         h = self.handlers.get(p.agent)
         if h is None:
             return None  # no keyframe yet: no map frame to place it in
@@ -534,12 +541,22 @@ class MapperService:
             with contextlib.suppress(queue.Empty):
                 while True:
                     items.append(self.pose_q.get_nowait())
-            newest = {it.key: it for it in items}
-            for item in newest.values():
+            # Every message is decoded (bad ones are counted); the newest good one per
+            # agent is stored.
+            newest: dict[str, tuple[PoseUpdate, int]] = {}
+            for item in items:
                 try:
-                    self.process_pose_bytes(item.key, item.payload, item.recv_ns)
+                    p = self.decode_pose(item.key, item.payload)
                 except Exception:
                     log.exception("pose failed", extra={"key": item.key})
+                    continue
+                if p is not None:
+                    newest[p.agent] = (p, item.recv_ns)
+            for p, recv_ns in newest.values():
+                try:
+                    self.store_pose(p, recv_ns)
+                except Exception:
+                    log.exception("pose failed", extra={"agent": p.agent})
 
     def stop(self) -> None:
         self._stop.set()
