@@ -57,6 +57,7 @@ SERVICE = "mapper"
 CULL_EVERY = 4  # batches between rejection rounds while a shared map's queue is full
 EVENT_MAX_DELAY_S = 0.5  # keyframe events wait at most this long behind queued batches
 EVENTS_PER_BATCH = 4
+LOAD_WINDOW_S = 2.0  # an actor's load is its busy share over about this long
 
 
 def initial_map_id(agent: str) -> str:
@@ -81,6 +82,7 @@ class MapActor:
         self.rng = random.Random(smap.map_id)
         self._cull_version = -1
         self._batches = 0
+        self._busy, self._busy_t = 0.0, time.monotonic()
         self.events: list[tuple[str, int]] = []  # (map, keyframe) for place recognition
         self._events_since = 0.0
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
@@ -104,6 +106,7 @@ class MapActor:
                 # The agent's map was merged into another after this batch was queued.
                 svc.actor(h.map_id).q.put((h, batch, recv_ns, key))
                 continue
+            t_batch = time.monotonic()
             try:
                 with self.lock:
                     svc.apply(h, batch, recv_ns)
@@ -114,6 +117,7 @@ class MapActor:
                 log.exception("keyframe batch failed", extra={"agent": h.agent})
             QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
             self._batches += 1
+            self._note_busy(t_batch, time.monotonic())
             # Keyframe events for place recognition wait while batches are queued (a
             # burst's acks go first), but not past EVENT_MAX_DELAY_S.
             self._publish_events(force=self.q.empty())
@@ -198,9 +202,23 @@ class MapActor:
         except Exception:
             log.exception("keyframe rejection failed")
 
+    def _note_busy(self, t0: float, t1: float) -> None:
+        """Share of the last LOAD_WINDOW_S spent registering batches (decayed sum)."""
+        decay = np.exp(-(t1 - self._busy_t) / LOAD_WINDOW_S)
+        self._busy = self._busy * decay + (t1 - t0) / LOAD_WINDOW_S
+        self._busy_t = t1
+
+    def load(self) -> float:
+        return self._busy * np.exp(-(time.monotonic() - self._busy_t) / LOAD_WINDOW_S)
+
     def _feedback(self) -> None:
+        # Feedback is spare-capacity work (up to 16 chunks a second for 8 agents, each
+        # several ms in a dense merged map): while registration keeps the actor over
+        # half busy, each agent gets it at a quarter of its rate.
+        slow = self.load() > 0.5
         try:
-            self.svc.send_feedback(self.smap, should_yield=self.svc.batches_waiting)
+            self.svc.send_feedback(self.smap, should_yield=self.svc.batches_waiting,
+                                   rate_factor=0.25 if slow else 1.0)  # fmt: skip
         except Exception:
             log.exception("feedback failed")
 
@@ -401,7 +419,7 @@ class MapperService:
         MAP_SIZE.labels(smap.map_id).set(len(smap.kfs))
         return len(victims)
 
-    def send_feedback(self, smap: ServerMap, should_yield=None) -> None:
+    def send_feedback(self, smap: ServerMap, should_yield=None, rate_factor: float = 1.0) -> None:
         """Map chunks to the agents of ``smap`` that are due one; ``should_yield`` is
         asked between agents (the actor stops when batches are waiting)."""
         if self.bus is None:
@@ -411,9 +429,8 @@ class MapperService:
         for h in [h for h in self.handlers.values() if h.smap is smap]:
             if should_yield is not None and should_yield():
                 return
-            if (
-                m.feedback_k <= 0
-                or now - self._fb_last.get(h.agent, -1e9) < 1.0 / m.feedback_rate_hz
+            if m.feedback_k <= 0 or now - self._fb_last.get(h.agent, -1e9) < 1.0 / (
+                m.feedback_rate_hz * rate_factor
             ):
                 continue
             with self.actors[smap.map_id].lock if smap.map_id in self.actors else _null():
