@@ -15,12 +15,14 @@ Every batch is stored in one MULTI/EXEC transaction before its ack is sent, so a
 ack always means "stored". On start, maps and handlers are rebuilt from Redis.
 
 Redundant-keyframe rejection (CCM-SLAM §4.6) runs when an actor is idle and, in a map
-several agents share, one round between batches: agents flying the same place keep
-adding observers to the same points, and every later keyframe pays for them, so there
-culling keeps pace with insertion. Point fusion and
-feedback are spare-capacity work, done a keyframe / an agent at a time while no batch
-is queued. Collaboration work on a map (copies, corrections, loop fusion) takes the
-same lock in short holds (see ``collab``).
+several agents share, between batches too (see ``MapActor._run``): agents flying the
+same place keep adding observers to the same points, and every later keyframe pays for
+them, so there culling keeps pace with insertion. Point fusion, feedback (slower while
+the actor is over half busy) and keyframe events for place recognition are deferred
+behind queued batches. Collaboration work on a map (copies, corrections, loop fusion)
+takes the same lock in short holds (see ``collab``) and, between them, sleeps while
+batches are queued (``wait_for_batches``): in one process the GIL is shared, and a
+lock alone does not give the actor priority.
 """
 
 from __future__ import annotations
@@ -134,6 +136,12 @@ class MapActor:
             # map) are registered first; it runs once the queue is drained.
             if self.q.empty():
                 self._feedback()
+
+    def queue_events(self, map_id: str, gids: list[int]) -> None:
+        """Keyframe events to publish after the batch (see ``_publish_events``)."""
+        if not self.events:
+            self._events_since = time.monotonic()
+        self.events.extend((map_id, g) for g in gids)
 
     def _publish_events(self, force: bool = False) -> None:
         """Keyframe events of the batches registered so far, under the map's lock (an
@@ -336,10 +344,7 @@ class MapperService:
                 if a is None or not a.thread.is_alive():
                     self.collab.publish_events(h.map_id, res.new_kfs)
                 else:
-                    # Published by the actor after the batch (see MapActor._publish_events).
-                    if not a.events:
-                        a._events_since = time.monotonic()
-                    a.events.extend((h.map_id, g) for g in res.new_kfs)
+                    a.queue_events(h.map_id, res.new_kfs)
         now_ns = time.time_ns()
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
