@@ -117,6 +117,14 @@ class Collaboration:
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
 
+    def current_map(self, map_id: str) -> str:
+        """The map ``map_id`` lives on as, following merges (bounded: no cycles)."""
+        for _ in range(len(self.merged_into)):
+            if map_id not in self.merged_into:
+                break
+            map_id = self.merged_into[map_id]
+        return map_id
+
     def map_of_kf(self, g: int) -> str | None:
         for map_id, smap in list(self.svc.maps.items()):
             if g in smap.kfs or g in smap.culled:
@@ -212,10 +220,7 @@ class Collaboration:
         aliases: dict[int, int] = {}
         for i in range(0, len(mp_q), self.fuse_slice):
             self.svc.wait_for_batches()
-            for _ in range(len(self.merged_into)):  # merged away meanwhile: follow it
-                if map_id not in self.merged_into:
-                    break
-                map_id = self.merged_into[map_id]
+            map_id = self.current_map(map_id)  # merged away meanwhile: follow it
             with self.svc.actor(map_id).lock:
                 smap = self.svc.maps.get(map_id)
                 if smap is None:

@@ -154,14 +154,10 @@ class MapActor:
         # Overdue during a burst: a few per batch (each is ~4 ms), oldest first.
         n = len(self.events) if self.q.empty() else EVENTS_PER_BATCH
         events, self.events = self.events[:n], self.events[n:]
-        merged = self.svc.collab.merged_into
         by_map: dict[str, list[int]] = {}
         for map_id, g in events:
-            for _ in range(len(merged)):  # merged away since: the keyframe moved along
-                if map_id not in merged:
-                    break
-                map_id = merged[map_id]
-            by_map.setdefault(map_id, []).append(g)
+            # Merged away since: the keyframe moved along.
+            by_map.setdefault(self.svc.collab.current_map(map_id), []).append(g)
         try:
             for map_id, gids in by_map.items():
                 if map_id in self.svc.maps:
