@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import platform
 import subprocess
 import time
@@ -19,13 +21,27 @@ def git_rev() -> str:
         return "unknown"
 
 
+def machine() -> dict:
+    """What a timing depends on: the same code measured 2.5x slower mapper latencies on
+    one 2-core machine than on another, so reports name the CPU and the load."""
+    info = {"cpus": os.cpu_count(), "python": platform.python_version()}
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            k, _, v = line.partition(":")
+            if k.strip() in ("model name", "cpu MHz") and k.strip() not in info:
+                info[k.strip()] = v.strip()
+    with contextlib.suppress(OSError):
+        info["loadavg_1m_at_write"] = os.getloadavg()[0]
+    return info
+
+
 def write_report(name: str, data: dict) -> Path:
     RESULTS.mkdir(parents=True, exist_ok=True)
     data = {
         "bench": name,
         "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "commit": git_rev(),
-        "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
+        "machine": machine(),
         **data,
     }
     path = RESULTS / f"{name}.json"
