@@ -27,9 +27,9 @@ def machine() -> dict:
     info = {"cpus": os.cpu_count(), "python": platform.python_version()}
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            k, _, v = line.partition(":")
-            if k.strip() in ("model name", "cpu MHz") and k.strip() not in info:
-                info[k.strip()] = v.strip()
+            k, _, v = (x.strip() for x in line.partition(":"))
+            if k in ("model name", "cpu MHz"):
+                info.setdefault(k, v)  # the first CPU's line; the others repeat it
     with contextlib.suppress(OSError):
         info["loadavg_1m_at_write"] = os.getloadavg()[0]
     return info
