@@ -160,3 +160,27 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
         s = 1.0
     t = mu_d - s * R @ mu_s
     return Sim3(R, t, s)
+
+
+def fit_sim3_poses(T_a: np.ndarray, T_b: np.ndarray) -> Sim3 | None:
+    """S_b_a with ``T_b ≈ S_b_a T_a`` for the same cameras posed in two frames ((N, 4, 4)
+    rigid poses each): rotation as the chordal mean of ``R_b R_a^T``, scale from the
+    spread of the camera centres about their mean, translation from the means.
+
+    Unlike :func:`umeyama` on the centres, the rotation is fixed by the orientations,
+    so it holds for a short, nearly straight stretch of flight. None when the centres
+    have no spread to measure a scale from."""
+    T_a = np.asarray(T_a, dtype=float)
+    T_b = np.asarray(T_b, dtype=float)
+    if T_a.shape != T_b.shape or T_a.ndim != 3 or len(T_a) < 2:
+        raise ValueError("fit_sim3_poses needs two (N>=2, 4, 4) arrays of equal shape")
+    M = np.einsum("nij,nkj->ik", T_b[:, :3, :3], T_a[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    c_a, c_b = T_a[:, :3, 3], T_b[:, :3, 3]
+    d_a = np.linalg.norm(c_a - c_a.mean(0), axis=1).sum()
+    d_b = np.linalg.norm(c_b - c_b.mean(0), axis=1).sum()
+    if d_a <= 1e-12 or d_b <= 1e-12:
+        return None
+    s = float(d_b / d_a)
+    return Sim3(R, c_b.mean(0) - s * R @ c_a.mean(0), s)
