@@ -386,7 +386,9 @@ class PoseUpdate:
 class MapChunk:
     """Mapper -> agent on ``hivemap/agent/{agent}/down/map``: the k keyframes most
     covisible with the agent's KF_ref and their map points, all relative to KF_ref
-    in the agent's local scale (CCM-SLAM §4.5)."""
+    in the agent's local scale (CCM-SLAM §4.5), and the correction ``S_g_l`` of the
+    agent's VO frame by the server's map (optional; see
+    ``services.mapper.feedback.frame_correction``)."""
 
     SCHEMA: ClassVar[str] = "hivemap.map_chunk/1"
     agent: str
@@ -403,9 +405,12 @@ class MapChunk:
     p_ref: np.ndarray  # (M, 3) float64, in KF_ref's camera frame
     mp_descriptors: np.ndarray  # (M, 32) uint8
     sent_ns: int = 0
+    S_g_l: np.ndarray | None = None  # (4, 4) [[s R, t], [0, 1]]: VO frame -> corrected
 
     def encode(self) -> bytes:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
+        if self.S_g_l is None:
+            del d["S_g_l"]  # optional: peers of the first version never see it
         d["schema"] = self.SCHEMA
         return packb(d)
 
@@ -437,7 +442,21 @@ class MapChunk:
             p_ref=_arr(_get(d, "p_ref"), "p_ref", "<f8", (m, 3)),
             mp_descriptors=_arr(_get(d, "mp_descriptors"), "mp_descriptors", "|u1", (m, 32)),
             sent_ns=_int(d.get("sent_ns", 0), "sent_ns"),
+            S_g_l=None if d.get("S_g_l") is None else _sim3(d["S_g_l"], "S_g_l"),
         )
+
+
+def _sim3(v: Any, name: str) -> np.ndarray:
+    """A 4x4 similarity [[s R, t], [0, 1]] with a positive scale."""
+    S = _pose(v, name)
+    A = S[:3, :3]
+    det = float(np.linalg.det(A))
+    if det <= 0:
+        raise DecodeError(f"{name}: not a similarity (det {det:.3g})")
+    s = np.cbrt(det)
+    if not np.allclose(A.T @ A, s * s * np.eye(3), atol=1e-6 * s * s):
+        raise DecodeError(f"{name}: not a similarity (rotation part not orthogonal)")
+    return S
 
 
 # --- server-side collaboration messages ------------------------------------------------

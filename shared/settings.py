@@ -52,6 +52,9 @@ class CommSettings(BaseModel):
 class MapperSettings(BaseModel):
     feedback_rate_hz: float = Field(2.0, gt=0)
     feedback_k: int = Field(5, ge=0)
+    # Chunks carry the correction of the agent's VO frame by the map (frame_correction),
+    # fitted on this many of its newest keyframes; 0 sends none.
+    feedback_correction_kfs: int = Field(60, ge=0)
     refine_poses: bool = True
     scale_correction: bool = True
     kappa: float = Field(0.05, gt=0, le=1)

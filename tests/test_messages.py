@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from messages_fixtures import sample_ack, sample_batch, sample_pose
 
+from shared.geometry import Sim3, exp_so3
 from shared.messages import Ack, DecodeError, KeyframeBatch, MapChunk, PoseUpdate, packb
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -52,6 +53,16 @@ def test_map_chunk_round_trip():
     d = MapChunk.decode(c.encode())
     assert d.kf_agents == ["A", "B"]
     np.testing.assert_array_equal(d.p_ref, c.p_ref)
+    assert d.S_g_l is None and "S_g_l" not in msgpack.unpackb(c.encode(), raw=False)
+    # The optional frame correction travels as a similarity and nothing else does.
+    S = Sim3(exp_so3(np.array([0.01, -0.02, 0.03])), np.array([0.1, 0.2, -0.3]), 1.02)
+    c.S_g_l = S.matrix()
+    np.testing.assert_array_equal(MapChunk.decode(c.encode()).S_g_l, S.matrix())
+    for bad in (np.diag([1.0, 1.0, 2.0, 1.0]), np.diag([-1.0, 1.0, 1.0, 1.0]),
+                np.full((4, 4), np.nan)):  # fmt: skip
+        c.S_g_l = bad
+        with pytest.raises(DecodeError, match="S_g_l"):
+            MapChunk.decode(c.encode())
 
 
 def _corruptions(good: bytes) -> list[bytes]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.geometry import se3_inv
+from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
 from shared.messages import MapChunk
 
 from .registration import AgentHandler
@@ -18,6 +18,8 @@ from .registration import AgentHandler
 # a margin covers keyframes in flight.
 RECENT_KFS = 15
 MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
+LOCAL_FIT_KFS = 60  # the agent's newest keyframes that say where the map puts it now
+MIN_FIT_KFS = 8
 
 
 def map_to_agent_ref(
@@ -36,27 +38,63 @@ def map_to_agent_ref(
     kfs = [smap.kfs[g] for g in range(lo, hi + 1) if g in smap.kfs]
     T_l_ref = ref.T_l_kf
     if len(kfs) >= 4:
-        M = sum(k.T_l_kf[:3, :3] @ k.T_m_kf[:3, :3].T for k in kfs)
-        U, _, Vt = np.linalg.svd(M)
-        R_lm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        c_m = np.array([k.T_m_kf[:3, 3] for k in kfs])
-        c_l = np.array([k.T_l_kf[:3, 3] for k in kfs])
-        d_m = np.linalg.norm((c_m - c_m.mean(0)) @ R_lm.T, axis=1).sum()
-        d_l = np.linalg.norm(c_l - c_l.mean(0), axis=1).sum()
+        T_m = np.stack([k.T_m_kf for k in kfs])
+        S_l_m = fit_sim3_poses(T_m, np.stack([k.T_l_kf for k in kfs]))
+        c_m = T_m[:, :3, 3]
+        d_m = np.linalg.norm(c_m - c_m.mean(0), axis=1).sum()
         obs = ref.mp[ref.mp >= 0][:200].tolist()
         depth = np.median([np.linalg.norm(smap.mps[g].pos - ref.T_m_kf[:3, 3])
                            for g in obs if g in smap.mps] or [np.inf])  # fmt: skip
-        s_lm = d_l / d_m if d_m > 1e-12 else 0.0
         # Enough baseline (mean spread >= MIN_SPREAD of the scene depth), and no more than
         # 20 % from the handler's scale (anything further is a broken fit, not drift).
-        if d_m / len(kfs) >= MIN_SPREAD * depth and abs(s_lm * h.scale - 1.0) < 0.2:
-            t_lm = c_l.mean(0) - s_lm * R_lm @ c_m.mean(0)
+        if (
+            S_l_m is not None
+            and d_m / len(kfs) >= MIN_SPREAD * depth
+            and abs(S_l_m.s * h.scale - 1.0) < 0.2
+        ):
             # p_ref = T_ref_l (s R_lm p_m + t_lm)
             R_rl, t_rl = T_l_ref[:3, :3].T, -T_l_ref[:3, :3].T @ T_l_ref[:3, 3]
-            return R_rl @ R_lm, R_rl @ t_lm + t_rl, float(s_lm)
+            return R_rl @ S_l_m.R, R_rl @ S_l_m.t + t_rl, float(S_l_m.s)
     T_ref_m = se3_inv(ref.T_m_kf)
     inv_s = 1.0 / h.scale
     return T_ref_m[:3, :3], T_ref_m[:3, 3] * inv_s, inv_s
+
+
+def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | None:
+    """S_g_l: the agent's VO frame ``l`` onto its server-corrected frame ``g``.
+
+    The server holds each of the agent's keyframes twice: as the VO sent it (``T_l_kf``)
+    and in the map after registration, loop closures, merges and global optimization
+    (``T_m_kf``). Two similarities relate them: ``S_m_l`` fitted on the newest
+    ``n_local`` keyframes (where the agent is now) and ``A_m_l`` fitted on all of them
+    (how the agent's frame sits on the map as a whole). ``S_g_l = A_m_l^-1 S_m_l`` moves
+    a VO pose to where the map puts it, expressed in frame ``g``: the agent's own frame
+    as the map sees it, which stays put while the map's frame changes (a merge moves
+    the whole map into another agent's frame; a loop closure re-scales it about the
+    map's first keyframe). With no loop closed, map and VO agree and S_g_l is nearly
+    the identity; after one, it carries the correction of the drift since the agent
+    was last in a place the map knows. The local fit spans tens of keyframes because
+    the newest few are the least settled in the map (their points have few
+    observations when global BA runs). None until the agent has enough keyframes,
+    or when a fit is degenerate."""
+    smap = h.smap
+    kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
+    if len(kfs) < MIN_FIT_KFS:
+        return None
+    T_l = np.stack([k.T_l_kf for k in kfs])
+    T_m = np.stack([k.T_m_kf for k in kfs])
+    # The whole flight: centres (the evaluation's alignment too); orientations as well
+    # when the centres are nearly on a line, which leaves a rotation about it unfixed.
+    c = T_l[:, :3, 3]
+    sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
+    A_m_l = umeyama(c, T_m[:, :3, 3]) if sv[1] > 0.05 * sv[0] else fit_sim3_poses(T_l, T_m)
+    S_m_l = fit_sim3_poses(T_l[-n_local:], T_m[-n_local:])
+    if A_m_l is None or S_m_l is None:
+        return None
+    S_g_l = A_m_l.inverse() @ S_m_l
+    if not (0.8 < S_g_l.s < 1.25 and np.isfinite(S_g_l.matrix()).all()):
+        return None  # a broken fit, not drift: the agent keeps its last correction
+    return S_g_l
 
 
 def _pose_in(R: np.ndarray, t: np.ndarray, s: float, T_m_kf: np.ndarray) -> np.ndarray:
@@ -67,20 +105,29 @@ def _pose_in(R: np.ndarray, t: np.ndarray, s: float, T_m_kf: np.ndarray) -> np.n
 
 
 def build_chunk(
-    h: AgentHandler, k: int, sent: set[int], now_ns: int, names: dict[int, str]
+    h: AgentHandler,
+    k: int,
+    sent: set[int],
+    now_ns: int,
+    names: dict[int, str],
+    correction_kfs: int = LOCAL_FIT_KFS,
 ) -> MapChunk | None:
+    """The chunk due to ``h``'s agent: its frame correction (unless ``correction_kfs``
+    is 0) and the k keyframes most covisible with its KF_ref that it lacks; None when
+    there is neither."""
     smap = h.smap
+    S = frame_correction(h, correction_kfs) if correction_kfs > 0 else None
+    S_g_l = None if S is None else S.matrix()
     ref_g = h.kf_gid(h.kf_ref) if h.kf_ref >= 0 else -1
     ref = smap.kfs.get(ref_g)
-    if ref is None:
-        return None
     # The agent's own newest keyframes are always the most covisible with its KF_ref,
     # and it holds them: the k sent are the most covisible of the others (another
     # agent's keyframes here, or its own from an earlier pass).
     lo, hi = h.kf_gid(max(h.latest_kf - RECENT_KFS, 0)), h.kf_gid(max(h.latest_kf, 0))
-    neigh = [g for g in smap.covisible(ref_g, min_weight=1) if not lo <= g <= hi][:k]
+    neigh = [] if ref is None else [
+        g for g in smap.covisible(ref_g, min_weight=1) if not lo <= g <= hi][:k]  # fmt: skip
     if not neigh:
-        return None
+        return None if S_g_l is None else _correction_only(h, now_ns, S_g_l)
     R_a, t_a, s_a = map_to_agent_ref(h, ref, lo, hi)
     kfs = [smap.kfs[g] for g in neigh]
     # Points in order of first appearance over the keyframes, found with numpy (this
@@ -134,5 +181,15 @@ def build_chunk(
         p_ref=p_ref.astype(np.float64),
         mp_descriptors=(np.concatenate([p.descriptor for p in pts]) if pts
                         else np.zeros(0, np.uint8)).astype(np.uint8).reshape(-1, 32),
-        sent_ns=now_ns,
+        sent_ns=now_ns, S_g_l=S_g_l,
+    )  # fmt: skip
+
+
+def _correction_only(h: AgentHandler, now_ns: int, S_g_l: np.ndarray) -> MapChunk:
+    none = np.zeros(0, np.int64)
+    return MapChunk(
+        agent=h.agent, map_id=h.smap.map_id, kf_ref=h.kf_ref, kf_agents=[], kf_ids=none,
+        T_ref_kf=np.zeros((0, 4, 4)), kf_keypoints=[], kf_descriptors=[], kf_mp_index=[],
+        mp_agents=[], mp_ids=none, p_ref=np.zeros((0, 3)),
+        mp_descriptors=np.zeros((0, 32), np.uint8), sent_ns=now_ns, S_g_l=S_g_l,
     )  # fmt: skip

@@ -435,8 +435,9 @@ class MapperService:
             ):
                 continue
             with self.actors[smap.map_id].lock if smap.map_id in self.actors else _null():
-                chunk = build_chunk(h, m.feedback_k, self._fb_sent.setdefault(h.agent, set()),
-                                    time.time_ns(), self.names)  # fmt: skip
+                sent = self._fb_sent.setdefault(h.agent, set())
+                chunk = build_chunk(h, m.feedback_k, sent, time.time_ns(), self.names,
+                                    m.feedback_correction_kfs)  # fmt: skip
             if chunk is None:
                 continue  # nothing sent (KF_ref not registered yet): no rate limit either
             self._fb_last[h.agent] = now

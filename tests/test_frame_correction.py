@@ -1,0 +1,93 @@
+"""The correction of an agent's VO frame by the server's map (map -> odometry)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.mapper.feedback import frame_correction
+from services.mapper.registration import AgentHandler
+from services.mapper.server_map import ServerKeyframe, ServerMap, gid
+from shared.geometry import Sim3, exp_so3, fit_sim3_poses
+from shared.trajectory import Trajectory, ate, load_euroc_gt
+
+
+def _drifted(T_true: np.ndarray, k: int) -> np.ndarray:
+    """A VO's pose after k keyframes: yaw, scale and position drift that grow with k
+    (about 0.3 deg, 3 % and 10 cm after 400 keyframes)."""
+    D = Sim3(exp_so3(np.array([0.0, 0.0, np.deg2rad(0.3) * k / 400])),
+             np.array([0.1, -0.05, 0.03]) * k / 400, 1.0 + 0.03 * k / 400)  # fmt: skip
+    return D.transform_pose(T_true)
+
+
+def _handler(T_l: np.ndarray, T_m: np.ndarray) -> AgentHandler:
+    smap = ServerMap("map-A")
+    h = AgentHandler("A", 1, smap)
+    none = np.zeros(0, np.int64)
+    for k, (Tl, Tm) in enumerate(zip(T_l, T_m, strict=True)):
+        smap.add_keyframe(ServerKeyframe(
+            gid(1, k), "A", k, k, Tm.copy(), Tl.copy(), np.zeros((0, 2), np.float32),
+            np.zeros((0, 2)), np.zeros(0, np.uint8), np.zeros((0, 32), np.uint8),
+            none))  # fmt: skip
+        h.local_poses[k] = Tl
+    return h
+
+
+def _flight(n: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframes along MH01 as a VO makes them: one per 15 cm of travel."""
+    gt = load_euroc_gt("MH01")
+    idx, last = [0], gt.poses[0, :3, 3]
+    for i, T in enumerate(gt.poses):
+        if np.linalg.norm(T[:3, 3] - last) > 0.15:
+            idx.append(i)
+            last = T[:3, 3]
+    idx = np.array(idx[:n])
+    return gt.stamps_ns[idx], gt.poses[idx]
+
+
+def test_fit_sim3_poses_recovers_a_similarity_from_a_straight_stretch():
+    rng = np.random.default_rng(0)
+    S = Sim3(exp_so3(np.array([0.3, -0.2, 0.5])), np.array([1.0, -2.0, 0.5]), 1.7)
+    T_a = np.stack([np.eye(4)] * 6)
+    T_a[:, 0, 3] = np.arange(6) * 0.4  # centres on a line: umeyama could not fix the roll
+    for T in T_a:
+        T[:3, :3] = exp_so3(rng.normal(0, 0.2, 3))
+    T_b = np.stack([S.transform_pose(T) for T in T_a])
+    F = fit_sim3_poses(T_a, T_b)
+    np.testing.assert_allclose(F.matrix(), S.matrix(), atol=1e-9)
+    assert fit_sim3_poses(T_a[:1].repeat(3, 0), T_b[:1].repeat(3, 0)) is None
+
+
+def test_correction_takes_the_drift_out_of_the_reported_poses():
+    """The map holds the flight as it was (loops closed), in another agent's frame; the
+    VO drifted. Each keyframe corrected with what the server knew when it was made
+    is far closer to the truth than the VO, and the corrected poses stay in one frame
+    (the evaluation aligns them once)."""
+    stamps, T_true = _flight()
+    M = Sim3(exp_so3(np.array([0.1, 0.4, -0.2])), np.array([3.0, 1.0, -1.0]), 0.7)
+    T_l = np.stack([_drifted(T, k) for k, T in enumerate(T_true)])
+    T_m = np.stack([M.transform_pose(T) for T in T_true])
+    vo, corrected = [], []
+    for t in range(20, len(T_true)):
+        S = frame_correction(_handler(T_l[: t + 1], T_m[: t + 1]))
+        assert S is not None
+        vo.append(T_l[t])
+        corrected.append(S.transform_pose(T_l[t]))
+    gt = Trajectory(stamps[20:], T_true[20:])
+    e_vo = ate(Trajectory(stamps[20:], np.stack(vo)), gt).rmse
+    e_corr = ate(Trajectory(stamps[20:], np.stack(corrected)), gt).rmse
+    assert e_vo > 0.02
+    # What is left is the frame g itself moving as the flight grows (it is fitted on
+    # the whole drifted VO trajectory): 0.41 of the VO's error here.
+    assert e_corr < 0.5 * e_vo, (e_vo, e_corr)
+
+
+def test_no_correction_where_map_and_vo_agree():
+    """Before any loop closure the map is the VO's chain in the map's frame: the
+    reported pose is the VO's."""
+    stamps, T_true = _flight(100)
+    M = Sim3(exp_so3(np.array([0.1, 0.4, -0.2])), np.array([3.0, 1.0, -1.0]), 0.7)
+    T_l = np.stack([_drifted(T, k) for k, T in enumerate(T_true)])
+    S = frame_correction(_handler(T_l, np.stack([M.transform_pose(T) for T in T_l])))
+    np.testing.assert_allclose(S.matrix(), np.eye(4), atol=1e-9)
+    # Too few keyframes to fit: no correction yet.
+    assert frame_correction(_handler(T_l[:3], T_l[:3])) is None
