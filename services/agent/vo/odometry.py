@@ -22,6 +22,8 @@ from .features import Extractor, Features, hamming, match_by_projection, match_d
 from .geometry import solve_pnp, triangulate, two_view_init
 from .local_ba import local_ba
 
+FOREIGN_ID0 = 1 << 50  # first local id of a point the server sent
+
 
 @dataclass
 class VOParams:
@@ -78,6 +80,9 @@ class VisualOdometry:
         self.mps: dict[int, MapPoint] = {}
         self.next_kf = 0
         self.next_mp = 0
+        # The server's points get ids of their own range, so the agent's own point ids
+        # (what it sends) do not depend on what the server sent when.
+        self.next_foreign_mp = FOREIGN_ID0
         self.state = "init"
         self.init_ref: tuple[int, Features] | None = None
         self.init_age = 0
@@ -143,9 +148,10 @@ class VisualOdometry:
         return r
 
     # --- tracking ---------------------------------------------------------------------------
-    def _local_points(self) -> np.ndarray:
+    def _local_points(self, with_foreign: bool = False) -> np.ndarray:
+        """Points of the newest ``local_kfs`` keyframes (and the server's, if asked)."""
         ids = sorted(self.kfs)[-self.p.local_kfs :]
-        pts = set(self.foreign)
+        pts = set(self.foreign) if with_foreign else set()
         for k in ids:
             m = self.kfs[k].mp
             pts.update(m[m >= 0].tolist())
@@ -162,7 +168,7 @@ class VisualOdometry:
                 self.mps[local].pos = np.asarray(p, float)  # the server's latest estimate
                 self.foreign.move_to_end(local)
                 continue
-            mp = self._new_mp(p, d, max(self.kfs, default=0))
+            mp = self._new_mp(p, d, max(self.kfs, default=0), foreign=True)
             self.foreign[mp.id] = key
             self.foreign_by_key[key] = mp.id
             n += 1
@@ -189,18 +195,35 @@ class VisualOdometry:
         pi, kp = match_by_projection(f, uv[sel], D[sel], radius)
         return sel[pi], kp, ok
 
-    def _track(self, f: Features, stamp: int) -> FrameResult:
-        pids = self._local_points()
-        P, D = self._points(pids)
-        T_pred = self.T_last @ self.velocity
-        res = None
+    def _predict(self, f: Features, T_pred: np.ndarray, P: np.ndarray, D: np.ndarray):
+        """First pose from the motion model: projection search, widened once."""
         for radius in (self.p.search_radius, 3 * self.p.search_radius):
             pi, kp, _ = self._search(f, T_pred, P, D, radius)
             if len(pi) >= self.p.min_inliers:
                 r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T_pred)
                 if r.ok and r.inliers.sum() >= self.p.min_inliers:
-                    res = r
-                    break
+                    return r, pi, kp
+        return None, None, None
+
+    def _track(self, f: Features, stamp: int) -> FrameResult:
+        # The agent's own points first. The server's sit in this frame through a fitted
+        # similarity and are less accurate locally than the VO's own map (measured: the
+        # server map's newest keyframes carry 6-8 mm of local error where the VO has
+        # 4 mm), so they join only where the agent's own map is thin: another agent's
+        # place, or after the agent lost track. Where its own points suffice, tracking
+        # is what it would be without a server; the server helps there by correcting the
+        # drift of the reported pose (S_g_l in the runner).
+        pids = self._local_points()
+        P, D = self._points(pids)
+        T_pred = self.T_last @ self.velocity
+        res, pi, kp = self._predict(f, T_pred, P, D)
+        weak = res is None or res.inliers.sum() < 2 * self.p.min_inliers
+        if weak and self.foreign:
+            ids = self._local_points(with_foreign=True)
+            P2, D2 = self._points(ids)
+            r2, pi2, kp2 = self._predict(f, T_pred, P2, D2)
+            if r2 is not None and (res is None or r2.inliers.sum() > res.inliers.sum()):
+                res, pi, kp, pids, P, D = r2, pi2, kp2, ids, P2, D2
         if res is None:
             res, pi, kp, P = self._relocalize(f, pids)
             if res is None:
@@ -319,10 +342,15 @@ class VisualOdometry:
         self.next_kf += 1
         return kf
 
-    def _new_mp(self, pos: np.ndarray, desc: np.ndarray, kf_id: int) -> MapPoint:
-        mp = MapPoint(self.next_mp, np.asarray(pos, float), desc.copy(), first_kf=kf_id)
+    def _new_mp(self, pos: np.ndarray, desc: np.ndarray, kf_id: int,
+                foreign: bool = False) -> MapPoint:  # fmt: skip
+        i = self.next_foreign_mp if foreign else self.next_mp
+        mp = MapPoint(i, np.asarray(pos, float), desc.copy(), first_kf=kf_id)
         self.mps[mp.id] = mp
-        self.next_mp += 1
+        if foreign:
+            self.next_foreign_mp += 1
+        else:
+            self.next_mp += 1
         return mp
 
     def _observe(self, kf: KeyFrame, k: int, mp: MapPoint) -> None:
