@@ -94,3 +94,42 @@ def test_agent_cli_reports_bad_source(spec, tmp_path):
                         spec, "--no-server", "--out", str(tmp_path)],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 2 and "MH09" in r.stderr
+
+
+def test_server_correction_moves_the_reported_pose_not_the_vo():
+    """A chunk's S_g_l maps every later VO pose to the reported (online) one; a chunk
+    whose S_g_l is not a similarity is rejected, counted, and changes nothing."""
+    from shared.geometry import Sim3, exp_so3
+    from shared.messages import MapChunk
+    from shared.metrics import REJECTED
+    from shared.transport import Received
+
+    src = open_source("synthetic:MH01?frames=1200:1240")
+    agent = Agent(Settings(), "corr", src, use_server=False)
+    key = "hivemap/agent/corr/down/map"
+    none = np.zeros(0, np.int64)
+
+    def chunk(S: np.ndarray) -> bytes:
+        return MapChunk("corr", "map-corr", -1, [], none, np.zeros((0, 4, 4)), [], [], [], [],
+                        none, np.zeros((0, 3)), np.zeros((0, 32), np.uint8),
+                        S_g_l=S).encode()  # fmt: skip
+
+    S = Sim3(exp_so3(np.array([0.02, -0.01, 0.03])), np.array([0.05, -0.02, 0.01]), 1.03)
+    rejected = REJECTED.labels("agent", key, "invalid")
+    before = rejected._value.get()
+    agent._ack_q.put(Received(key, chunk(S.matrix()), 0))
+    agent._ack_q.put(Received(key, chunk(np.diag([1.0, 1.0, 2.0, 1.0])), 0))
+    stats = agent.run()
+    agent.close()
+    assert stats.corrections == 1 and rejected._value.get() == before + 1
+    np.testing.assert_allclose(agent.S_g_l.matrix(), S.matrix(), atol=1e-12)
+    assert len(agent.poses) == len(agent.vo_poses) > 10
+    for (s0, T), (s1, V) in zip(agent.poses, agent.vo_poses, strict=True):
+        assert s0 == s1
+        np.testing.assert_allclose(T, S.transform_pose(V), atol=1e-12)
+    # Without a server the VO alone: the same VO poses (the correction never touches it).
+    alone = Agent(Settings(), "corr2", open_source("synthetic:MH01?frames=1200:1240"),
+                  use_server=False)  # fmt: skip
+    alone.run()
+    np.testing.assert_array_equal(np.stack([T for _, T in alone.vo_poses]),
+                                  np.stack([T for _, T in agent.vo_poses]))  # fmt: skip

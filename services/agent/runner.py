@@ -4,6 +4,14 @@ The VO never waits for the network: the Zenoh session is opened in the backgroun
 (a client retries until a router is reachable), and until then keyframes and map
 points wait in the communication module, bounded by the local map's buffer rules
 (CCM-SLAM §4.2). Every frame's online pose goes to a TUM file.
+
+The VO runs in its own frame ``l`` and is never moved. What the agent reports as its
+pose is the VO pose mapped through the latest correction from the server
+(``S_g_l``, see ``services.mapper.feedback.frame_correction``): the VO's drift
+since the agent was last in a place the server's map knows, taken out by the
+map's loop closures, merges and global optimization -- the map -> odometry split of
+ROS navigation. Without a server (or with feedback off) the correction stays the
+identity and the reported pose is the VO's.
 """
 
 from __future__ import annotations
@@ -18,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from shared import keys
-from shared.geometry import se3_inv
+from shared.geometry import Sim3, se3_inv
 from shared.messages import (
     Ack,
     DecodeError,
@@ -52,6 +60,7 @@ class AgentStats:
     kf_lost_unacked: int = 0
     foreign_points: int = 0  # server points taken into the local map
     chunks: int = 0  # server map chunks received for a keyframe still held
+    corrections: int = 0  # frame corrections taken from the server
     server_maps: list[str] = field(default_factory=list)  # the server maps it was in, in order
 
     def summary(self) -> dict:
@@ -65,6 +74,7 @@ class AgentStats:
             "map_ms_per_kf_p95": float(np.percentile(m, 95)),
             "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
             "foreign_points": self.foreign_points, "chunks": self.chunks,
+            "corrections": self.corrections,
             "server_maps": self.server_maps,
         }  # fmt: skip
 
@@ -84,7 +94,9 @@ class Agent:
         c = settings.comm
         self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
         self.stats = AgentStats()
-        self.poses: list[tuple[int, np.ndarray]] = []
+        self.poses: list[tuple[int, np.ndarray]] = []  # online: VO pose through S_g_l
+        self.vo_poses: list[tuple[int, np.ndarray]] = []  # the VO's own
+        self.S_g_l = Sim3.identity()  # VO frame -> frame corrected by the server's map
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self.bus = None
         self._session = None
@@ -131,7 +143,8 @@ class Agent:
             self.stats.frames += 1
             self.stats.track_ms.append(r.track_s * 1e3)
             if r.T_w_c is not None:
-                self.poses.append((fr.stamp_ns, r.T_w_c))
+                self.vo_poses.append((fr.stamp_ns, r.T_w_c))
+                self.poses.append((fr.stamp_ns, self.S_g_l.transform_pose(r.T_w_c)))
             if r.state == "lost":
                 self.stats.lost_frames += 1
                 lost_since = fr.stamp_ns if lost_since is None else lost_since
@@ -210,6 +223,9 @@ class Agent:
             REJECTED.labels("agent", key, "invalid").inc()
             log.warning("bad map chunk: %s", e)
             return
+        if c.S_g_l is not None:
+            self.S_g_l = Sim3.from_matrix(c.S_g_l)
+            self.stats.corrections += 1
         ref = self.vo.kfs.get(c.kf_ref)
         if ref is None:
             return
@@ -330,10 +346,11 @@ class Agent:
 
     def write_outputs(self, out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
-        if self.poses:
-            st = np.array([s for s, _ in self.poses], np.int64)
-            T = np.stack([T for _, T in self.poses])
-            (out / f"{self.agent}_online.tum").write_text(format_tum(st, T))
+        for name, poses in (("online", self.poses), ("vo", self.vo_poses)):
+            if poses:
+                st = np.array([s for s, _ in poses], np.int64)
+                T = np.stack([T for _, T in poses])
+                (out / f"{self.agent}_{name}.tum").write_text(format_tum(st, T))
         gt = self.source.ground_truth
         if gt is not None:
             (out / f"{self.agent}_gt.tum").write_text(format_tum(gt.stamps_ns, gt.poses))
