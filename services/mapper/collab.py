@@ -92,7 +92,6 @@ class Collaboration:
         self._lock = threading.Lock()
         # Map copies and corrections of any map, one at a time (see ``request``).
         self._opt_lock = threading.Lock()
-        # Seconds the last copy of each map cost the mapper: copies of a big map are
         # Seconds the last copy and the last correction of each map cost the mapper: for a
         # big map (a second or more each) requests are spaced so that the two take at most
         # ``opt_share`` of the mapper's time; small maps keep ``optimize_min_interval_s``.
@@ -105,6 +104,8 @@ class Collaboration:
         # Poses each optimization request was made from, by (map, version): a correction
         # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
+        self._continues: dict[str, int] = {}  # map -> runs asked for to finish a BA
+        self.max_continues = 3
 
     # --- state --------------------------------------------------------------------------
     def load(self) -> None:
@@ -339,6 +340,20 @@ class Collaboration:
     def mark_dirty(self, map_id: str, reason: str) -> None:
         with self._lock:
             self._dirty[map_id] = reason
+            self._continues.pop(map_id, None)
+
+    def _continue(self, map_id: str) -> None:
+        """BA stopped on its time budget, the map part way to its optimum (on a busy
+        machine after a single iteration, with the map's frame tens of mm off for as
+        long as no new loop asked for another run): the next run starts from here.
+        At most ``max_continues`` in a row, so a map too big to converge within the
+        budget is not optimized without end."""
+        with self._lock:
+            n = self._continues.get(map_id, 0)
+            if n >= self.max_continues or map_id in self._dirty:
+                return
+            self._continues[map_id] = n + 1
+            self._dirty[map_id] = "continue"
 
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
@@ -448,6 +463,8 @@ class Collaboration:
         with self._lock:
             self._corr_s[c.map_id] = time.perf_counter() - t0
         CORRECTIONS.inc()
+        if c.stats.get("ba_stop") == "time_budget":
+            self._continue(c.map_id)
         log.info("applied correction to %s: %d keyframes (%d carried along), %d points (%s)",
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
                  c.stats)  # fmt: skip
