@@ -169,11 +169,15 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) 
     seq_of = {name: seq for name, seq, _ in sources}
     matches = check_matches(rec, seq_of)
     during, other = rec.latencies()
-    online = {}
+    # The agents' per-frame poses as they reported them in flight (the VO's through the
+    # server's frame correction) and their VO's own (CCM-SLAM Table 7).
+    online, vo = {}, {}
     for name, _, _ in sources:
-        f = out / f"{name}_online.tum"
-        if f.exists():
-            online[name] = ate(read_tum(f), read_tum(out / f"{name}_gt.tum")).rmse
+        gt = read_tum(out / f"{name}_gt.tum")
+        for d, kind in ((online, "online"), (vo, "vo")):
+            f = out / f"{name}_{kind}.tum"
+            if f.exists():
+                d[name] = ate(read_tum(f), gt).rmse
     doc.pop("stack", None)
     judged = [m for m in matches if m["correct"] is not None]
     return {
@@ -184,8 +188,10 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) 
         "optimizations": sum(len(v) for v in rec.opt_end.values()),
         "kf_latency_during_opt_ms": _pcts(during), "kf_latency_other_ms": _pcts(other),
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
+        "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
-                            ("keyframes", "track_ms_median", "track_ms_p95", "longest_lost_s")}
+                            ("keyframes", "track_ms_median", "track_ms_p95", "longest_lost_s",
+                         "chunks", "corrections", "foreign_points")}
                         for a, v in doc["agents"].items()},
     }  # fmt: skip
 
@@ -229,7 +235,8 @@ def main() -> int:
                          "optimizations": r["optimizations"],
                          "lat_opt_p95": r["kf_latency_during_opt_ms"].get("p95"),
                          "lat_p95": r["kf_latency_other_ms"].get("p95"),
-                         "online_sum": r["online_ate_sum_m"]})  # fmt: skip
+                         "online_sum": r["online_ate_sum_m"],
+                         "vo_sum": r["vo_ate_sum_m"]})  # fmt: skip
     print(table(rows, list(rows[0]) if rows else ["run"]))
     per = [{"run": n, "agent": e["agent"], "seq": e["seq"], "kfs": e["keyframes"],
             "ate_m": e["ate_m"], "ate_pct": e["ate_pct"]}
