@@ -175,14 +175,21 @@ def _wait_port(host: str, port: int, timeout: float) -> None:
     raise TimeoutError(f"nothing listens on {host}:{port} after {timeout:.0f} s")
 
 
-def _run_until_signal(stack: Stack, until: threading.Event | None = None) -> int:
-    stop = until or threading.Event()
+def _stop_on_signal() -> threading.Event:
+    """Route SIGINT/SIGTERM to an event. Installed before any child starts: a signal
+    that arrived between the API answering and the handler going in would kill the
+    launcher outright and leave its children, each in its own session, orphaned."""
+    stop = threading.Event()
 
     def handler(signum, frame):  # noqa: ARG001
         stop.set()
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _run_until_signal(stack: Stack, stop: threading.Event) -> int:
     try:
         while not stop.wait(0.5):
             bad = stack.failed()
@@ -206,6 +213,7 @@ def _print_urls(stack: Stack) -> None:
 
 
 def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
+    stop = _stop_on_signal()
     stack = Stack(settings, data_dir=args.data_dir)
     try:
         stack.start()
@@ -213,10 +221,11 @@ def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
         stack.stop()
         raise
     _print_urls(stack)
-    return _run_until_signal(stack)
+    return _run_until_signal(stack, stop)
 
 
 def cmd_demo(args: argparse.Namespace, settings: Settings) -> int:
+    stop = _stop_on_signal()
     stack = Stack(settings, data_dir=args.data_dir)
     try:
         stack.start()
@@ -233,7 +242,7 @@ def cmd_demo(args: argparse.Namespace, settings: Settings) -> int:
         )  # fmt: skip
         print(f"agent        : {agent} flying {seq} at {args.speed}x real time")
     sys.stdout.flush()
-    return _run_until_signal(stack)
+    return _run_until_signal(stack, stop)
 
 
 def cmd_router(args: argparse.Namespace, settings: Settings) -> int:

@@ -152,8 +152,12 @@ def run_team(
 
 
 def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
-    from .launcher import _run_until_signal
+    import signal
 
+    from .launcher import _run_until_signal, _stop_on_signal
+
+    # SIGTERM unwinds like Ctrl-C so run_team's finally stops the stack it started.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     doc = run_team(
         settings, _sources(args), Path(args.out), realtime=args.realtime,
         feedback=not args.no_feedback, with_api=not args.no_api, data_dir=args.data_dir,
@@ -161,7 +165,7 @@ def cmd_run_team(args: argparse.Namespace, settings: Settings) -> int:
     )  # fmt: skip
     if args.keep:
         print("stack still up; Ctrl-C stops it", flush=True)
-        return _run_until_signal(doc["stack"])
+        return _run_until_signal(doc["stack"], _stop_on_signal())
     return 0
 
 

@@ -90,6 +90,23 @@ def test_up_serves_and_sigterm_leaves_no_orphans():
     assert not left, f"orphans after SIGTERM: {left}"
 
 
+def test_sigterm_while_starting_still_stops_everything():
+    """A signal before the stack is fully up must not kill the launcher outright and
+    orphan the children it already started."""
+    proc = subprocess.Popen(
+        [HIVEMAP, "up"], env=_env(free_port()), stdout=subprocess.PIPE, text=True
+    )
+    seen: set[int] = set()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not seen:  # first child = redis, the stack is starting
+        seen = _descendants(proc.pid)
+        time.sleep(0.02)
+    assert seen, "launcher started nothing"
+    left = _stop(proc) | {p for p in seen if _alive(p)}
+    assert proc.returncode == 0
+    assert not left, f"orphans after SIGTERM during start: {left}"
+
+
 @pytest.mark.slow
 def test_demo_lists_three_moving_agents_within_30_s():
     port = free_port()
