@@ -34,13 +34,13 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from common import table, write_report  # noqa: E402
 
-from services.agent.vo.features import Extractor  # noqa: E402
 from services.placerec.database import KeyframeDatabase  # noqa: E402
 from services.placerec.keyframe import KeyframeData  # noqa: E402
 from services.placerec.verify import verify  # noqa: E402
 from services.placerec.vocabulary import Vocabulary, default_path  # noqa: E402
 from shared.camera import PinholeRadTan  # noqa: E402
 from shared.geometry import rotation_angle, se3_inv  # noqa: E402
+from shared.orb import Extractor  # noqa: E402
 from shared.synthetic.render import Renderer  # noqa: E402
 from shared.synthetic.world import World  # noqa: E402
 from shared.trajectory import SEQUENCES, load_euroc_gt  # noqa: E402

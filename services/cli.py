@@ -21,8 +21,8 @@ COMMAND_MODULES = [
     "services.team_cli",  # run-team, eval
     "services.agent.cli",  # agent
     "services.agent.sim_cli",  # sim-agent
+    "services.agent.render_cli",  # sim render
     "services.export_cli",  # export
-    "shared.synthetic.cli",  # sim render
 ]
 
 

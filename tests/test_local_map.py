@@ -7,9 +7,9 @@ import pytest
 
 from services.agent.local_map_trim import KfInfo, trim
 from services.agent.vo.covisibility import EDGE_MIN, build_covisibility
-from services.agent.vo.features import Features
 from services.agent.vo.odometry import KeyFrame, MapPoint, VisualOdometry, remove_keyframe
 from shared.camera import PinholeRadTan
+from shared.orb import Features
 
 
 def _own(i: int, acked: bool = False) -> KfInfo:

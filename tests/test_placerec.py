@@ -63,8 +63,8 @@ STILL = [("MH03", 184), ("MH03", 204)]
 def views():
     import cv2
 
-    from services.agent.vo.features import Extractor
     from shared.camera import PinholeRadTan
+    from shared.orb import Extractor
     from shared.synthetic.render import Renderer
     from shared.synthetic.world import World
     from shared.trajectory import load_euroc_gt

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
+from services.agent.render_cli import write_euroc
 from services.agent.sources import SourceError, open_source
 from shared.camera import PinholeRadTan
-from shared.synthetic.cli import write_euroc
 
 CAM = PinholeRadTan.euroc_cam0()
 

@@ -6,11 +6,11 @@ from collections import OrderedDict
 
 import numpy as np
 
-from services.agent.vo.features import Features
 from services.agent.vo.geometry import solve_pnp
 from services.agent.vo.odometry import VisualOdometry
 from shared.camera import PinholeRadTan
 from shared.geometry import exp_so3, rotation_angle, se3, se3_inv
+from shared.orb import Features
 
 
 def _scene(rng, n: int, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

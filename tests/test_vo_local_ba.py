@@ -6,10 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from services.agent.vo.features import Extractor, Features, match_by_projection
+from services.agent.vo.features import match_by_projection
 from services.agent.vo.local_ba import local_ba
 from shared.camera import PinholeRadTan
 from shared.geometry import exp_so3, rotation_angle, se3
+from shared.orb import Extractor, Features
 
 F = 458.0
 

@@ -2,8 +2,8 @@
 
 Graph: one Pose3 (camera to map) per keyframe, one Point3 per map point with at
 least two observations, one GenericProjectionFactorCal3_S2 per observation on
-undistorted normalized coordinates (unit calibration), noise ``1.2**octave / fx``
-(ORB's pyramid sigma in pixels, expressed in normalized units) under a Huber
+undistorted normalized coordinates (unit calibration), noise ``SCALE_FACTOR**octave / fx``
+(``shared.orb``: ORB's pyramid sigma in pixels, expressed in normalized units) under a Huber
 kernel with ``k = sqrt(5.991)`` standard deviations (ORB-SLAM's 2-DoF 95 % chi2).
 
 Gauge (7 DoF for monocular): a tight prior on the fixed keyframe's pose (6 DoF)
@@ -38,11 +38,11 @@ from services.optimizer.pose_graph import (
     point_ref_index,
 )
 from services.optimizer.snapshot import Correction, MapSnapshot
+from shared.orb import SCALE_FACTOR
 
 log = logging.getLogger(__name__)
 
 CHI2_2DOF_95 = 5.991
-PYRAMID_SCALE = 1.2
 
 
 @dataclass
@@ -86,7 +86,7 @@ def reprojection(snap_T: np.ndarray, pos: np.ndarray, snap: MapSnapshot) -> Repr
     proj = X_c[:, :2] / np.where(front, z, 1.0)[:, None]
     err = np.linalg.norm(proj - snap.obs_xy, axis=1) * snap.fx
     err = np.where(front, err, np.inf)
-    sig = PYRAMID_SCALE ** snap.obs_octave.astype(np.float64)
+    sig = SCALE_FACTOR ** snap.obs_octave.astype(np.float64)
     return ReprojStats((err / sig) ** 2, err)
 
 
@@ -199,7 +199,7 @@ def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correcti
     oct_all = snap.obs_octave.astype(np.int64)
     models = {
         int(o): gtsam.noiseModel.Robust.Create(
-            huber, gtsam.noiseModel.Isotropic.Sigma(2, PYRAMID_SCALE**o / snap.fx)
+            huber, gtsam.noiseModel.Isotropic.Sigma(2, SCALE_FACTOR**o / snap.fx)
         )
         for o in np.unique(oct_all[obs_ok])
     }

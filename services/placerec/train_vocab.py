@@ -28,8 +28,8 @@ def render_descriptors(
     """ORB descriptors of every ``every``-th ground-truth frame: (desc, image id, n frames)."""
     import cv2
 
-    from services.agent.vo.features import Extractor
     from shared.camera import PinholeRadTan
+    from shared.orb import Extractor
     from shared.synthetic.render import Renderer
     from shared.synthetic.world import World
     from shared.trajectory import load_euroc_gt
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         "every": args.every,
         "frames": n_frames,
         "descriptors": int(len(desc)),
-        "extractor": "services.agent.vo.features.Extractor(euroc_cam0, 1000)",
+        "extractor": "shared.orb.Extractor(euroc_cam0, 1000)",
         "train_seconds": round(t_train, 1),
     }
     voc.save(out)

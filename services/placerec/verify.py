@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from shared.geometry import Sim3, umeyama
+from shared.orb import SCALE_FACTOR
 
 from .keyframe import KeyframeData, MapPoints
 from .vocabulary import as_u64, hamming_u64
@@ -57,7 +58,7 @@ class VerifyParams:
     ransac_iterations: int = 300
     ransac_min_inliers: int = 20
     chi2: float = 9.21  # 2 dof, 99 %, in px^2 at sigma 1
-    scale_factor: float = 1.2  # ORB pyramid: sigma = scale_factor ** octave
+    scale_factor: float = SCALE_FACTOR  # ORB pyramid: sigma = scale_factor ** octave
     guided_radius_px: float = 7.5  # SearchBySim3, times the predicted level's scale
     guided_max_hamming: int = 100  # ORB-SLAM TH_HIGH
     opt_chi2: float = 10.0  # OptimizeSim3 outlier threshold (and Huber width sqrt)

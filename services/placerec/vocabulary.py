@@ -8,7 +8,7 @@ node it passed at ``fv_level`` (the "feature vector"), which restricts descripto
 matching between two keyframes to keypoints under the same node.
 
 Descriptors are handled as (N, 4) uint64 so a Hamming distance is one XOR and
-``np.bitwise_count`` per word; the tree descent is vectorized over all
+``np.bitwise_count`` per word (``shared.orb.hamming_u64``); the tree descent is vectorized over all
 descriptors one level at a time (no per-descriptor Python loop).
 """
 
@@ -23,6 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.orb import as_u64, hamming_u64
+
+__all__ = ["as_u64", "hamming_u64"]  # where the place-recognition modules find them
+
 log = logging.getLogger(__name__)
 
 DEFAULT_FILE = "orb_k10_l5.npz"
@@ -31,19 +35,6 @@ FORMAT = "hivemap.vocab/1"
 
 def default_path() -> Path:
     return Path(str(resources.files("services.placerec") / "data" / DEFAULT_FILE))
-
-
-def as_u64(desc: np.ndarray) -> np.ndarray:
-    """(N, 32) uint8 ORB descriptors -> (N, 4) uint64 view (copied if not contiguous)."""
-    d = np.ascontiguousarray(desc, dtype=np.uint8)
-    if d.ndim != 2 or d.shape[1] != 32:
-        raise ValueError(f"expected (N, 32) uint8 descriptors, got {d.shape}")
-    return d.view(np.uint64)
-
-
-def hamming_u64(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance between broadcastable (..., 4) uint64 descriptor arrays."""
-    return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=-1, dtype=np.int32)
 
 
 @dataclass(frozen=True)

@@ -1,87 +1,16 @@
-"""ORB features spread over the image, and descriptor matching.
+"""Descriptor matching of the on-board VO: by projection and brute force.
 
-OpenCV's ORB clusters keypoints on strong texture; like ORB-SLAM we detect more
-candidates than needed and keep the strongest per grid cell, so every part of the
-image contributes (which PnP and triangulation need). Matching by projection uses
-a k-d tree over keypoints (scipy) and a popcount table for Hamming distances.
+Extraction, the pyramid and the Hamming distance are ``shared.orb`` (the server reasons
+about the same features). Matching by projection uses the keypoints' k-d tree
+(``Features.tree``) and takes the best descriptor within a radius.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-from shared.camera import PinholeRadTan
-
-POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-
-
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return POPCOUNT[np.bitwise_xor(a, b)].sum(axis=-1, dtype=np.int32)
-
-
-@dataclass
-class Features:
-    kp: np.ndarray  # (N, 2) float32 distorted pixels
-    octave: np.ndarray  # (N,) uint8
-    desc: np.ndarray  # (N, 32) uint8
-    xy: np.ndarray  # (N, 2) float64 undistorted normalized coordinates
-    _tree: cKDTree | None = None
-
-    def __len__(self) -> int:
-        return len(self.kp)
-
-    @property
-    def tree(self) -> cKDTree:
-        if self._tree is None:
-            self._tree = cKDTree(self.kp.astype(np.float64))
-        return self._tree
-
-
-class Extractor:
-    def __init__(
-        self,
-        camera: PinholeRadTan,
-        n_features: int = 1000,
-        grid: tuple[int, int] = (8, 6),
-        oversample: float = 2.0,
-    ) -> None:
-        self.cam = camera
-        self.n = n_features
-        self.grid = grid
-        self.orb = cv2.ORB_create(nfeatures=int(n_features * oversample), scaleFactor=1.2,
-                                  nlevels=8, edgeThreshold=19, fastThreshold=12)  # fmt: skip
-
-    def __call__(self, img: np.ndarray) -> Features:
-        kps = self.orb.detect(img, None)
-        if len(kps) > self.n:
-            kps = self._spread(kps, img.shape)
-        kps, desc = self.orb.compute(img, kps)
-        if desc is None or not kps:
-            z = np.zeros((0, 2))
-            return Features(z.astype(np.float32), np.zeros(0, np.uint8),
-                            np.zeros((0, 32), np.uint8), z)  # fmt: skip
-        kp = np.array([k.pt for k in kps], np.float32)
-        octv = np.array([k.octave for k in kps], np.uint8)
-        return Features(kp, octv, desc, self.cam.undistort_points(kp))
-
-    def _spread(self, kps, shape) -> list:
-        gx, gy = self.grid
-        h, w = shape
-        pts = np.array([k.pt for k in kps])
-        resp = np.array([k.response for k in kps])
-        cell = (np.minimum(pts[:, 1] * gy // h, gy - 1) * gx
-                + np.minimum(pts[:, 0] * gx // w, gx - 1)).astype(int)  # fmt: skip
-        order = np.lexsort((-resp, cell))
-        # Rank inside each cell; take ranks round-robin until n are chosen.
-        sc = cell[order]
-        start = np.r_[0, np.nonzero(np.diff(sc))[0] + 1]
-        rank = np.arange(len(sc)) - np.repeat(start, np.diff(np.r_[start, len(sc)]))
-        pick = order[np.lexsort((-resp[order], rank))][: self.n]
-        return [kps[i] for i in pick]
+from shared.orb import Features, hamming
 
 
 def match_by_projection(

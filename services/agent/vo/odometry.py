@@ -17,8 +17,9 @@ import numpy as np
 
 from shared.camera import PinholeRadTan
 from shared.geometry import se3_inv
+from shared.orb import Extractor, Features, hamming
 
-from .features import Extractor, Features, hamming, match_by_projection, match_descriptors
+from .features import match_by_projection, match_descriptors
 from .geometry import solve_pnp, triangulate, two_view_init
 from .local_ba import local_ba
 

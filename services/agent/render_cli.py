@@ -1,4 +1,8 @@
-"""``hivemap sim render``: a EuRoC ASL folder rendered from the synthetic world."""
+"""``hivemap sim render``: a EuRoC ASL folder rendered from the synthetic world.
+
+It lives with the agent because it writes what the agent's ``synthetic:`` image source
+produces (``shared/`` knows no service): ``euroc:DIR`` then replays the same frames.
+"""
 
 from __future__ import annotations
 
@@ -15,8 +19,9 @@ def write_euroc(
 ) -> int:
     import cv2
 
-    from services.agent.sources import SyntheticSource
     from shared.trajectory import write_tum
+
+    from .sources import SyntheticSource
 
     src = SyntheticSource(seq, seed, every, frames)
     cam_dir = out / "mav0" / "cam0"
@@ -42,7 +47,7 @@ def write_euroc(
 
 
 def cmd_render(args: argparse.Namespace, settings: Settings) -> int:
-    from services.agent.sources import SourceError
+    from .sources import SourceError
 
     try:
         n = write_euroc(Path(args.out), args.traj, args.seed, args.every, args.frames)
