@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test lint format bench system-tools clean
+.PHONY: install demo test lint format bench system-tools dashboards clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,17 +19,26 @@ demo: $(STAMP)
 	$(BIN)/hivemap demo
 
 # Debian's docker-compose (v1) validates docker-compose.yml where no compose v2
-# plugin exists, and promtool (package prometheus) checks the scrape config. Best
-# effort: without root or apt the tests that need them say they skipped.
+# plugin exists; prometheus (with promtool) checks the scrape config and, in
+# tests/test_prometheus.py, scrapes a running stack for real; chromium is the browser
+# tests/test_viewer.py drives through playwright (which never downloads a browser of its
+# own). Best effort: without root or apt the tests that need them say they skipped.
 system-tools:
 	@missing=""; \
 	if ! docker compose version >/dev/null 2>&1 && ! command -v docker-compose >/dev/null 2>&1; then \
 	  missing="$$missing docker-compose"; fi; \
-	command -v promtool >/dev/null 2>&1 || missing="$$missing prometheus"; \
+	command -v promtool >/dev/null 2>&1 && command -v prometheus >/dev/null 2>&1 || missing="$$missing prometheus"; \
+	command -v chromium >/dev/null 2>&1 || missing="$$missing chromium"; \
 	if [ -n "$$missing" ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing) \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	     --no-install-recommends $$missing fonts-dejavu-core) \
 	    >/dev/null 2>&1 || echo "note: could not install$$missing; their tests will skip"; \
 	fi
+
+# The Grafana dashboards are generated (services/dashboards.py, Grafana's foundation SDK);
+# tests/test_deploy.py fails when the checked-in JSON is not what this writes.
+dashboards: $(STAMP)
+	$(BIN)/hivemap dashboards
 
 test: $(STAMP) system-tools
 	$(BIN)/pytest -q

@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "services.agent.sim_cli",  # sim-agent
     "services.agent.render_cli",  # sim render
     "services.export_cli",  # export
+    "services.dashboards",  # dashboards
 ]
 
 

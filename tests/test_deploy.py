@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from services import dashboards
 from services.cli import build_parser
 from services.launcher import service_plan
 from shared.settings import Settings
@@ -23,7 +24,7 @@ from shared.settings import Settings
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 PROMETHEUS = ROOT / "deploy/prometheus/prometheus.yml"
-DASHBOARD = ROOT / "deploy/grafana/dashboards/hivemap.json"
+DASHBOARDS = ROOT / "deploy/grafana/dashboards"
 GRAFANA_DS = ROOT / "deploy/grafana/provisioning/datasources/prometheus.yml"
 GRAFANA_DASHBOARDS = ROOT / "deploy/grafana/provisioning/dashboards/hivemap.yml"
 # The plan's infrastructure: in compose they are the zenohd and redis images.
@@ -198,44 +199,85 @@ def _metric_names_in_code() -> set[str]:
     return names | {n + "_total" for n in names}
 
 
-def _panels(panels: list[dict]) -> list[dict]:
-    """Panels, with those folded inside collapsed rows."""
-    out = []
-    for p in panels:
-        out.append(p)
-        out.extend(_panels(p.get("panels", [])))
-    return out
+def _dashboards() -> dict[str, dict]:
+    files = sorted(DASHBOARDS.glob("*.json"))
+    assert files, f"no dashboards in {DASHBOARDS}"
+    return {f.name: json.loads(f.read_text()) for f in files}
 
 
-def test_grafana_dashboard_queries_exported_metrics():
-    dash = json.loads(DASHBOARD.read_text())
+def test_dashboards_are_what_the_code_builds():
+    """The checked-in JSON is exactly what services/dashboards.py builds with Grafana's
+    foundation SDK: a hand edit, or a code change without `hivemap dashboards`, fails."""
+    built = dashboards.build_all()
+    on_disk = {f.name: f.read_text() for f in DASHBOARDS.glob("*.json")}
+    assert set(on_disk) == set(built), "run `hivemap dashboards` to regenerate"
+    for name, text in built.items():
+        assert on_disk[name] == text, f"{name} differs: run `hivemap dashboards`"
+    # and the regeneration is deterministic (panel ids, key order, layout)
+    assert dashboards.build_all() == built
+
+
+def test_dashboards_check_command_detects_a_stale_file(tmp_path):
+    """`hivemap dashboards --check` is what CI or a user runs: 0 when current, 1 when a
+    file differs or is left over."""
+    from services.cli import main
+
+    assert main(["dashboards", "--out", str(tmp_path)]) == 0
+    assert main(["dashboards", "--out", str(tmp_path), "--check"]) == 0
+    f = tmp_path / "hivemap-team.json"
+    f.write_text(f.read_text().replace('"refresh": "10s"', '"refresh": "5s"'))
+    assert main(["dashboards", "--out", str(tmp_path), "--check"]) == 1
+    assert main(["dashboards", "--out", str(tmp_path)]) == 0
+    (tmp_path / "old.json").write_text("{}")
+    assert main(["dashboards", "--out", str(tmp_path), "--check"]) == 1
+
+
+def test_grafana_dashboards_query_exported_metrics():
     ds = yaml.safe_load(GRAFANA_DS.read_text())["datasources"]
     assert len(ds) == 1 and ds[0]["type"] == "prometheus"
     # The compose service name and port Prometheus listens on.
     assert ds[0]["url"] == "http://prometheus:9090"
     uid = ds[0]["uid"]
-    panels = [p for p in _panels(dash["panels"]) if p.get("type") != "row"]
-    ids = [p["id"] for p in _panels(dash["panels"])]
-    assert len(ids) == len(set(ids))
+    assert uid == dashboards.DATASOURCE_UID
     known = _metric_names_in_code()
     used = set()
-    for p in panels:
-        assert p["datasource"] == {"type": "prometheus", "uid": uid}, p["title"]
-        assert p["targets"], p["title"]
-        for t in p["targets"]:
-            assert t.get("datasource", p["datasource"])["uid"] == uid, p["title"]
-            names = re.findall(r"hivemap_[a-z0-9_]+", t["expr"])
-            assert names, (p["title"], t["expr"])
-            used.update(names)
+    uids = set()
+    for name, dash in _dashboards().items():
+        uids.add(dash["uid"])
+        panels = [p for p in dashboards.panels(dash) if p.get("type") != "row"]
+        ids = [p["id"] for p in dashboards.panels(dash)]
+        assert len(ids) == len(set(ids)), name
+        for p in panels:
+            assert p["datasource"] == {"type": "prometheus", "uid": uid}, p["title"]
+            assert p["targets"], p["title"]
+            # units, descriptions: a panel says what it shows and in what
+            assert p.get("description"), p["title"]
+            assert p["fieldConfig"]["defaults"].get("unit"), p["title"]
+            for t in p["targets"]:
+                assert t.get("datasource", p["datasource"])["uid"] == uid, p["title"]
+                names = re.findall(r"hivemap_[a-z0-9_]+", t["expr"])
+                assert names or re.match(r"^(up|changes|rate\(process_|process_)", t["expr"]), (
+                    p["title"],
+                    t["expr"],
+                )
+                used.update(names)
+    assert len(uids) == len(_dashboards())
     # Histograms are queried through their _bucket/_sum/_count series.
     base = {re.sub(r"_(bucket|sum|count)$", "", u) for u in used}
     missing = base - known
-    assert not missing, f"the dashboard queries metrics nothing exports: {sorted(missing)}"
-    # The panels the issue asks for: latency percentiles, traffic, loss and resends.
-    for name in ("hivemap_keyframe_latency_seconds", "hivemap_agent_ack_latency_seconds",
-                 "hivemap_bytes_total", "hivemap_messages_rejected_total",
-                 "hivemap_injected_drops_total", "hivemap_resent_total",
-                 "hivemap_service_up", "hivemap_api_requests_total"):  # fmt: skip
+    assert not missing, f"the dashboards query metrics nothing exports: {sorted(missing)}"
+    # Only processes Prometheus scrapes export what a panel reads: agents are robots in
+    # the field, never scraped, so an agent-side metric would leave its panel empty.
+    agent_only = {"hivemap_agent_ack_latency_seconds", "hivemap_resent_total",
+                  "hivemap_injected_drops_total"}  # fmt: skip
+    assert not base & agent_only, sorted(base & agent_only)
+    # The panels the issue asks for: team overview, latency percentiles, traffic,
+    # rejections, service health, place recognition and optimization, overload.
+    for name in ("hivemap_map_merges_total", "hivemap_matches_applied_total",
+                 "hivemap_keyframe_latency_seconds", "hivemap_bytes_total",
+                 "hivemap_messages_rejected_total", "hivemap_service_up",
+                 "hivemap_api_requests_total", "hivemap_placerec_query_seconds",
+                 "hivemap_optimizations_total", "hivemap_map_queue_depth"):  # fmt: skip
         assert name in base, name
 
 
@@ -245,11 +287,10 @@ def test_dashboard_queries_are_valid_promql(tmp_path):
     promtool = shutil.which("promtool")
     if promtool is None:
         pytest.skip("promtool (Debian package prometheus) is not installed")
-    dash = json.loads(DASHBOARD.read_text())
     rules = [
-        {"record": f"hivemap:panel{p['id']}:{i}", "expr": t["expr"]}
-        for p in _panels(dash["panels"])
-        for i, t in enumerate(p.get("targets", []))
+        {"record": f"hivemap:{name.removesuffix('.json').replace('-', '_')}:{i}", "expr": e}
+        for name, dash in _dashboards().items()
+        for i, (_, e) in enumerate(dashboards.expressions(dash))
     ]
     assert rules
     f = tmp_path / "rules.yml"

@@ -21,3 +21,10 @@ LOCK_HOLD = Histogram(
     "How long a map's lock was held at a time (registration, fusion, matches, corrections)",
     buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0, 2.5),
 )
+
+# Every known label value exists from the start (at 0), so a dashboard shows "no merges
+# yet" as 0 rather than as an empty panel.
+for _kind in ("merge", "loop", "loop_redundant"):
+    MATCHES.labels(_kind)
+for _reason in ("merge", "loop", "continue"):
+    OPT_REQUESTS.labels(_reason)

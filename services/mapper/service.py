@@ -349,6 +349,7 @@ class MapperService:
         STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
         MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))
         MAP_POINTS.labels(h.map_id).set(len(h.smap.mps))
+        CULLED.labels(h.map_id)  # exists at 0 from the map's first keyframe on
         PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
         return ack
 

@@ -11,3 +11,7 @@ SUPERSEDED = Counter(
     "hivemap_optimizations_superseded_total",
     "Optimization requests replaced by a newer copy of the same map before finishing",
 )
+
+# Known reasons (the mapper's OptimizeRequest.reason) exist from the start, at 0.
+for _reason in ("merge", "loop", "continue"):
+    OPTIMIZATIONS.labels(_reason)

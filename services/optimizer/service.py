@@ -157,6 +157,8 @@ class OptimizerService:
                                     daemon=True)  # fmt: skip
         self._rx.start()
         self._thread.start()
+        # The histogram exists before the first run: rate() over it then counts that run.
+        PROCESSING.labels(SERVICE, "optimize")
         UP.labels(SERVICE).set(1)
         log.info("optimizer running")
 

@@ -16,3 +16,9 @@ MATCHES_PUBLISHED = Counter(
     "hivemap_placerec_matches_total", "Verified matches published", ["kind"]
 )
 DB_KEYFRAMES = Gauge("hivemap_placerec_db_keyframes", "Keyframes in the place database")
+
+# Known label values exist from the start, at 0.
+for _result in ("accepted", "rejected"):
+    VERIFIED.labels(_result)
+for _kind in ("merge", "loop"):
+    MATCHES_PUBLISHED.labels(_kind)

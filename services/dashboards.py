@@ -1,0 +1,538 @@
+"""The Grafana dashboards, as code: ``hivemap dashboards`` writes deploy/grafana/dashboards/.
+
+Built with Grafana's own foundation SDK (``grafana-foundation-sdk``, pinned to the
+Grafana 11.2 branch the compose deployment runs), so every field has the type and name
+Grafana's schema gives it. Two dashboards:
+
+- **HiveMap / team**: what a mission operator watches. Team overview (agents, maps,
+  merges, loops), keyframe latency p50/p95/p99 against the 200 ms bar, each agent's
+  tracking and traffic (selectable with the ``agent`` variable).
+- **HiveMap / server**: what whoever runs the server watches. Service health and
+  restarts, overload and shedding, place recognition and optimization, traffic and
+  the API.
+
+Every expression reads only metrics that a process Prometheus scrapes exports
+(mapper, placerec, optimizer, api, and Prometheus's own ``up``): agents are robots in
+the field and are never scraped, so what they know reaches Prometheus through the
+mapper. ``tests/test_prometheus.py`` evaluates every expression against a real
+Prometheus scraping a running stack; ``tests/test_deploy.py`` fails when the checked-in
+JSON differs from what this module builds (run ``hivemap dashboards`` after a change).
+
+Dashboard variables are ``$agent`` (a regex of agent ids; "All" is ``.*``) and nothing
+else, so a test can substitute them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+DATASOURCE_UID = "hivemap-prometheus"  # deploy/grafana/provisioning/datasources/prometheus.yml
+# The scrape jobs of deploy/prometheus/prometheus.yml: one per hivemap service.
+JOBS = 'job=~"mapper|placerec|optimizer|api"'
+# The mapper's keyframe latency bar (issue 18: p95 <= 200 ms) and where it gets tight.
+LATENCY_BAR_S = 0.2
+LATENCY_WARN_S = 0.1
+# What "All" selects in the $agent variable, and what tests substitute for it.
+VARIABLES = {"agent": ".*"}
+
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "deploy" / "grafana" / "dashboards"
+
+
+@dataclass(frozen=True)
+class Q:
+    """One query of a panel: a PromQL expression and its legend."""
+
+    expr: str
+    legend: str = ""
+
+
+def _sdk():
+    """The SDK is a development dependency: the services never import it."""
+    try:
+        from grafana_foundation_sdk.builders import common as common_b
+        from grafana_foundation_sdk.builders import dashboard as dash_b
+        from grafana_foundation_sdk.builders import prometheus as prom_b
+        from grafana_foundation_sdk.builders import stat as stat_b
+        from grafana_foundation_sdk.builders import timeseries as ts_b
+        from grafana_foundation_sdk.cog.encoder import JSONEncoder
+        from grafana_foundation_sdk.models import common as common_m
+        from grafana_foundation_sdk.models import dashboard as dash_m
+    except ImportError as e:  # pragma: no cover - only without the dev extras
+        raise SystemExit(
+            "hivemap dashboards needs grafana-foundation-sdk: pip install -e '.[dev]'"
+        ) from e
+    return dash_b, ts_b, stat_b, prom_b, common_b, common_m, dash_m, JSONEncoder
+
+
+class _Builder:
+    """Panels laid out in rows; ids are given in order so regeneration is stable."""
+
+    def __init__(self, uid: str, title: str, description: str, tags: list[str]) -> None:
+        (self.dash_b, self.ts_b, self.stat_b, self.prom_b, self.common_b, self.common_m,
+         self.dash_m, self.encoder) = _sdk()  # fmt: skip
+        self.ds = self.dash_m.DataSourceRef(type_val="prometheus", uid=DATASOURCE_UID)
+        self.next_id = 1
+        self.d = (
+            self.dash_b.Dashboard(title)
+            .uid(uid)
+            .description(description)
+            .tags(tags)
+            .editable()
+            .refresh("10s")
+            .time("now-30m", "now")
+            .timezone("browser")
+            .tooltip(self.dash_m.DashboardCursorSync.CROSSHAIR)
+        )
+
+    def _id(self) -> int:
+        i = self.next_id
+        self.next_id += 1
+        return i
+
+    def row(self, title: str) -> None:
+        self.d = self.d.with_row(self.dash_b.Row(title).id(self._id()))
+
+    def _targets(self, queries: list[Q], instant: bool = False) -> list:
+        out = []
+        for i, q in enumerate(queries):
+            t = (
+                self.prom_b.Dataquery()
+                .expr(q.expr)
+                .ref_id(chr(ord("A") + i))
+                .datasource(self.ds)
+                .legend_format(q.legend or "__auto")
+            )
+            t = t.instant() if instant else t.range()
+            out.append(t)
+        return out
+
+    def _thresholds(self, steps: list[tuple[float | None, str]]):
+        return (
+            self.dash_b.ThresholdsConfig()
+            .mode(self.dash_m.ThresholdsMode.ABSOLUTE)
+            .steps([self.dash_m.Threshold(value=v, color=c) for v, c in steps])
+        )
+
+    def timeseries(
+        self,
+        title: str,
+        description: str,
+        queries: list[Q],
+        unit: str,
+        *,
+        w: int = 12,
+        h: int = 8,
+        thresholds: list[tuple[float | None, str]] | None = None,
+        min_val: float | None = 0,
+    ) -> None:
+        p = (
+            self.ts_b.Panel()
+            .id(self._id())
+            .title(title)
+            .description(description)
+            .datasource(self.ds)
+            .unit(unit)
+            .height(h)
+            .span(w)
+            .line_width(1)
+            .fill_opacity(10)
+            .show_points(self.common_m.VisibilityMode.NEVER)
+            .legend(
+                self.common_b.VizLegendOptions()
+                .display_mode(self.common_m.LegendDisplayMode.LIST)
+                .placement(self.common_m.LegendPlacement.BOTTOM)
+                .show_legend(True)
+            )
+        )
+        if min_val is not None:
+            p = p.min(min_val)
+        if thresholds:
+            p = p.thresholds(self._thresholds(thresholds)).thresholds_style(
+                self.common_b.GraphThresholdsStyleConfig().mode(
+                    self.common_m.GraphThresholdsStyleMode.DASHED
+                )
+            )
+        for t in self._targets(queries):
+            p = p.with_target(t)
+        self.d = self.d.with_panel(p)
+
+    def stat(
+        self,
+        title: str,
+        description: str,
+        query: Q,
+        unit: str = "none",
+        *,
+        w: int = 4,
+        h: int = 4,
+        thresholds: list[tuple[float | None, str]] | None = None,
+    ) -> None:
+        p = (
+            self.stat_b.Panel()
+            .id(self._id())
+            .title(title)
+            .description(description)
+            .datasource(self.ds)
+            .unit(unit)
+            .height(h)
+            .span(w)
+            .graph_mode(self.common_m.BigValueGraphMode.AREA)
+            .color_mode(self.common_m.BigValueColorMode.VALUE)
+            .reduce_options(self.common_b.ReduceDataOptions().calcs(["lastNotNull"]))
+            .thresholds(self._thresholds(thresholds or [(None, "blue")]))
+        )
+        for t in self._targets([query]):
+            p = p.with_target(t)
+        self.d = self.d.with_panel(p)
+
+    def agent_variable(self, metric: str) -> None:
+        v = (
+            self.dash_b.QueryVariable("agent")
+            .label("agent")
+            .description("Agents to show (regex of agent ids)")
+            .datasource(self.ds)
+            .query(f"label_values({metric}, agent)")
+            .refresh(self.dash_m.VariableRefresh.ON_TIME_RANGE_CHANGED)
+            .sort(self.dash_m.VariableSort.NATURAL_ASC)
+            .multi(True)
+            .include_all(True)
+            .all_value(VARIABLES["agent"])
+        )
+        self.d = self.d.with_variable(v)
+
+    def link(self, title: str, uid: str) -> None:
+        self.d = self.d.link(
+            self.dash_b.DashboardLink(title)
+            .type(self.dash_m.DashboardLinkType.LINK)
+            .url(f"/d/{uid}")
+            .keep_time(True)
+        )
+
+    def json(self) -> dict:
+        text = json.dumps(self.d.build(), cls=self.encoder, sort_keys=True)
+        return json.loads(text)
+
+
+def _quantiles(metric: str, by: str = "", window: str = "1m", sel: str = "") -> list[Q]:
+    grp = f"le, {by}" if by else "le"
+    suffix = f" {{{{{by}}}}}" if by else ""
+    return [
+        Q(f"histogram_quantile({q}, sum by ({grp}) (rate({metric}_bucket{sel}[{window}])))",
+          f"p{int(q * 100)}{suffix}")
+        for q in (0.5, 0.95, 0.99)
+    ]  # fmt: skip
+
+
+def _agent_of_key(expr: str, direction: str) -> str:
+    """Per-agent traffic from the mapper's per-key byte counters (``key`` is
+    ``hivemap/agent/{agent}/{up|down}/...``): the agent id moved into an ``agent`` label."""
+    return (
+        f'sum by (agent) (label_replace({expr}, "agent", "$1", "key", '
+        f'"hivemap/agent/([^/]+)/{direction}/.*"))'
+    )
+
+
+TEAM_UID = "hivemap-team"
+SERVER_UID = "hivemap-server"
+
+
+def team_dashboard() -> dict:
+    b = _Builder(
+        TEAM_UID, "HiveMap / team",
+        "A mission as the server sees it: agents, maps, merges and loops, keyframe "
+        "latency, and each agent's tracking and traffic.",
+        ["hivemap", "slam"],
+    )  # fmt: skip
+    b.agent_variable("hivemap_keyframe_latency_seconds_count")
+    b.link("Server", SERVER_UID)
+
+    b.row("Team overview")
+    b.stat("Agents", "Agents whose keyframes the mapper has registered since it started.",
+           Q("count(count by (agent) (hivemap_keyframe_latency_seconds_count))"))  # fmt: skip
+    b.stat("Maps", "Server maps holding keyframes now (a merged map is gone from the count).",
+           Q("count(hivemap_map_keyframes)"))  # fmt: skip
+    b.stat("Merges", "Maps fused into another since the mapper started (CCM-SLAM 4.8).",
+           Q("sum(hivemap_map_merges_total)"))  # fmt: skip
+    b.stat("Loops closed", "Verified intra-map place matches applied as loop edges.",
+           Q('sum(hivemap_matches_applied_total{kind="loop"})'))  # fmt: skip
+    b.stat("Keyframes", "Keyframes in all server maps (after redundant-keyframe culling).",
+           Q("sum(hivemap_map_keyframes)"))  # fmt: skip
+    b.stat("Map points", "Map points in all server maps.", Q("sum(hivemap_map_points)"))
+    b.timeseries(
+        "Keyframes per map",
+        "Each server map's size. When two maps merge, the smaller one's line ends and the "
+        "larger one jumps.",
+        [Q("hivemap_map_keyframes", "{{map}}")], "short",
+    )  # fmt: skip
+    b.timeseries(
+        "Merges and loops (per 5 min)",
+        "Place matches the mapper applied: `merge` fused two maps, `loop` closed a loop "
+        "inside one, `loop_redundant` was a loop between keyframes already linked.",
+        [Q("sum by (kind) (increase(hivemap_matches_applied_total[5m]))", "{{kind}}")],
+        "short",
+    )  # fmt: skip
+
+    b.row("Keyframe latency")
+    b.timeseries(
+        "Keyframe latency, all agents (received -> stored + acked)",
+        "Time from the mapper receiving a keyframe batch to the keyframe being "
+        "registered, written to Redis and acknowledged. The dashed line is the 200 ms "
+        "bar for p95.",
+        _quantiles("hivemap_keyframe_latency_seconds"), "s",
+        thresholds=[(None, "green"), (LATENCY_WARN_S, "orange"), (LATENCY_BAR_S, "red")],
+    )  # fmt: skip
+    b.timeseries(
+        "Keyframe latency p95 per agent",
+        "The same latency, 95th percentile per agent over the last minute.",
+        [Q("histogram_quantile(0.95, sum by (le, agent) "
+           '(rate(hivemap_keyframe_latency_seconds_bucket{agent=~"$agent"}[1m])))',
+           "{{agent}}")], "s",
+        thresholds=[(None, "green"), (LATENCY_WARN_S, "orange"), (LATENCY_BAR_S, "red")],
+    )  # fmt: skip
+
+    b.row("Per agent: tracking and traffic")
+    b.timeseries(
+        "Keyframes stored per second",
+        "Keyframes per second each agent got registered and stored.",
+        [Q('sum by (agent) (rate(hivemap_keyframe_latency_seconds_count{agent=~"$agent"}[1m]))',
+           "{{agent}}")], "ops", w=8,
+    )  # fmt: skip
+    up = 'rate(hivemap_bytes_total{service="mapper", direction="in"}[1m])'
+    down = 'rate(hivemap_bytes_total{service="mapper", direction="out"}[1m])'
+    b.timeseries(
+        "Uplink per agent (agent -> server)",
+        "Bytes per second the mapper receives from each agent: keyframes, map points, "
+        "updates and live poses. CCM-SLAM reports about 0.4 MB/s per agent.",
+        [Q(_agent_of_key(up, "up"), "{{agent}}")],
+        "Bps", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Downlink per agent (server -> agent)",
+        "Bytes per second the mapper sends each agent: acks and map chunks (feedback).",
+        [Q(_agent_of_key(down, "down"), "{{agent}}")], "Bps", w=8,
+    )  # fmt: skip
+    return b.json()
+
+
+def server_dashboard() -> dict:
+    b = _Builder(
+        SERVER_UID, "HiveMap / server",
+        "The services behind a mission: health and restarts, overload, place "
+        "recognition and optimization, traffic and the API.",
+        ["hivemap", "services"],
+    )  # fmt: skip
+    b.link("Team", TEAM_UID)
+
+    b.row("Service health and restarts")
+    b.timeseries(
+        "Scrape targets up",
+        "1 when Prometheus reached the service's /metrics on its last scrape; 0 when the "
+        "process is down or too busy to answer.",
+        [Q(f"up{{{JOBS}}}", "{{job}}")], "none", w=8,
+        thresholds=[(None, "red"), (1, "green")],
+    )  # fmt: skip
+    b.timeseries(
+        "Service loops running",
+        "1 while a service's main loop runs (set by the service itself).",
+        [Q("hivemap_service_up", "{{service}}")], "none", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Restarts (last hour)",
+        "How often each service's process started anew within the last hour (its "
+        "process_start_time_seconds changed): a supervisor or the container runtime "
+        "restarted it.",
+        [Q(f"changes(process_start_time_seconds{{{JOBS}}}[1h])", "{{job}}")], "short", w=8,
+        thresholds=[(None, "green"), (1, "orange"), (3, "red")],
+    )  # fmt: skip
+    b.timeseries(
+        "CPU per service",
+        "CPU time each service process uses, in cores (1 = one core busy).",
+        [Q(f"rate(process_cpu_seconds_total{{{JOBS}}}[1m])", "{{job}}")], "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Memory per service",
+        "Resident memory of each service process.",
+        [Q(f"process_resident_memory_bytes{{{JOBS}}}", "{{job}}")], "bytes", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Rejected messages and requests",
+        "Samples that failed to decode or validate, per service and reason, and API "
+        "requests refused (unknown ids, malformed parameters). Never fatal, always counted.",
+        [Q("sum by (service, reason) (increase(hivemap_messages_rejected_total[5m]))",
+           "{{service}}: {{reason}}"),
+         Q("sum by (reason) (increase(hivemap_api_rejected_total[5m]))", "api: {{reason}}")],
+        "short", w=8,
+    )  # fmt: skip
+
+    b.row("Overload and shedding")
+    b.timeseries(
+        "Batches waiting per map",
+        "Keyframe batches queued for each map's actor. A queue that keeps growing means "
+        "the map gets more than one mapper thread can register.",
+        [Q("hivemap_map_queue_depth", "{{map}}")], "short", w=8,
+        thresholds=[(None, "green"), (10, "orange"), (50, "red")],
+    )  # fmt: skip
+    b.timeseries(
+        "Processing time p95 per message kind",
+        "95th percentile of the time each service spends on one received message.",
+        [Q("histogram_quantile(0.95, sum by (le, service, kind) "
+           "(rate(hivemap_processing_seconds_bucket[5m])))", "{{service}} {{kind}}")],
+        "s", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Map lock hold time",
+        "How long a map's lock is held at a time (registration, fusion, matches, "
+        "corrections): long holds delay every agent on that map.",
+        _quantiles("hivemap_map_lock_hold_seconds", window="5m"), "s", w=8,
+    )  # fmt: skip
+
+    b.row("Place recognition and optimization")
+    b.timeseries(
+        "Place query time",
+        "Bag-of-words conversion, inter- and intra-map queries and consistency check, "
+        "per keyframe.",
+        _quantiles("hivemap_placerec_query_seconds", window="5m"), "s", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Geometric verifications (per 5 min)",
+        "Sim(3) RANSAC verifications of place candidates, accepted or rejected, and the "
+        "keyframes in the place database.",
+        [Q("sum by (result) (increase(hivemap_placerec_verifications_total[5m]))",
+           "{{result}}"),
+         Q("hivemap_placerec_db_keyframes", "keyframes in database")],
+        "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Matches published and applied (per 5 min)",
+        "Verified matches placerec published, and those the mapper applied.",
+        [Q("sum by (kind) (increase(hivemap_placerec_matches_total[5m]))",
+           "published {{kind}}"),
+         Q("sum by (kind) (increase(hivemap_matches_applied_total[5m]))", "applied {{kind}}")],
+        "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Optimizations (per 5 min)",
+        "Global optimizations (Sim(3) pose graph + BA) requested by the mapper, finished "
+        "by the optimizer, superseded by a newer copy of the same map, and corrections "
+        "the mapper applied.",
+        [Q("sum by (reason) (increase(hivemap_optimize_requests_total[5m]))",
+           "requested: {{reason}}"),
+         Q("sum by (reason) (increase(hivemap_optimizations_total[5m]))",
+           "finished: {{reason}}"),
+         Q("sum(increase(hivemap_optimizations_superseded_total[5m]))", "superseded"),
+         Q("sum(increase(hivemap_corrections_applied_total[5m]))", "corrections applied")],
+        "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Optimization time",
+        "Time for one global optimization of a map copy (pose graph, then time-bounded "
+        "BA), median and slowest over 15 min.",
+        [Q("histogram_quantile(0.5, sum by (le) (rate(hivemap_processing_seconds_bucket"
+           '{service="optimizer", kind="optimize"}[15m])))', "p50"),
+         Q("histogram_quantile(1, sum by (le) (rate(hivemap_processing_seconds_bucket"
+           '{service="optimizer", kind="optimize"}[15m])))', "max")],
+        "s", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Culled keyframes (per 5 min)",
+        "Redundant keyframes removed from each map (CCM-SLAM 4.6).",
+        [Q("sum by (map) (increase(hivemap_keyframes_culled_total[5m]))", "{{map}}")],
+        "short", w=8,
+    )  # fmt: skip
+
+    b.row("Traffic and API")
+    b.timeseries(
+        "Bytes per second by service and direction",
+        "Zenoh payload bytes each service sends and receives.",
+        [Q("sum by (service, direction) (rate(hivemap_bytes_total[1m]))",
+           "{{service}} {{direction}}")], "Bps", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Messages per second by service and direction",
+        "Zenoh samples each service sends and receives.",
+        [Q("sum by (service, direction) (rate(hivemap_messages_total[1m]))",
+           "{{service}} {{direction}}")], "ops", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "API requests",
+        "HTTP requests per second by route and status, WebSocket connections accepted "
+        "per minute.",
+        [Q("sum by (route, status) (rate(hivemap_api_requests_total[1m]))",
+           "{{route}} {{status}}"),
+         Q("sum(increase(hivemap_api_ws_connections_total[1m]))", "websocket connections")],
+        "reqps", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "API latency p95 per route",
+        "95th percentile of HTTP request handling time.",
+        [Q("histogram_quantile(0.95, sum by (le, route) "
+           "(rate(hivemap_api_request_seconds_bucket[5m])))", "{{route}}")], "s", w=8,
+    )  # fmt: skip
+    return b.json()
+
+
+DASHBOARDS = {"hivemap-team.json": team_dashboard, "hivemap-server.json": server_dashboard}
+
+
+def render(dashboard: dict) -> str:
+    """The checked-in form: sorted keys, two-space indent, a final newline."""
+    return json.dumps(dashboard, indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+
+
+def build_all() -> dict[str, str]:
+    return {name: render(fn()) for name, fn in DASHBOARDS.items()}
+
+
+def panels(dashboard: dict) -> list[dict]:
+    """Every panel, with those folded inside collapsed rows."""
+    out = []
+    for p in dashboard.get("panels", []):
+        out.append(p)
+        out.extend(panels(p))
+    return out
+
+
+def expressions(dashboard: dict) -> list[tuple[str, str]]:
+    """(panel title, PromQL) of every query, with the dashboard variables substituted."""
+    out = []
+    for p in panels(dashboard):
+        for t in p.get("targets", []):
+            e = t["expr"]
+            for name, value in VARIABLES.items():
+                e = e.replace(f"${name}", value)
+            out.append((p["title"], e))
+    return out
+
+
+def cmd_dashboards(args: argparse.Namespace, settings) -> int:  # noqa: ARG001
+    out = Path(args.out)
+    built = build_all()
+    stale = [n for n, text in built.items()
+             if not (out / n).exists() or (out / n).read_text() != text]  # fmt: skip
+    extra = sorted(p.name for p in out.glob("*.json") if p.name not in built)
+    if args.check:
+        for n in stale:
+            print(f"{out / n}: differs from what services/dashboards.py builds", file=sys.stderr)
+        for n in extra:
+            print(f"{out / n}: no dashboard of services/dashboards.py", file=sys.stderr)
+        return 1 if stale or extra else 0
+    out.mkdir(parents=True, exist_ok=True)
+    for n in extra:
+        (out / n).unlink()
+        print(f"removed {out / n}")
+    for n, text in built.items():
+        (out / n).write_text(text)
+        print(f"{'wrote' if n in stale else 'unchanged'} {out / n}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("dashboards", help="regenerate the Grafana dashboards (deploy/grafana)")
+    p.add_argument("--out", default=str(DEFAULT_OUT), help="dashboards directory")
+    p.add_argument("--check", action="store_true",
+                   help="exit 1 when the files differ from what the code builds")  # fmt: skip
+    p.set_defaults(func=cmd_dashboards)
