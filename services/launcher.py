@@ -23,7 +23,7 @@ from pathlib import Path
 
 from services.runtime import set_priority
 from shared.redis_server import RedisServer, free_port
-from shared.settings import Settings
+from shared.settings import DEFAULT_ROUTER, Settings
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ class ServiceSpec:
 def service_plan(settings: Settings) -> list[ServiceSpec]:
     """Every process of the stack, in start order. ``router`` and ``redis`` are the
     infrastructure (zenohd and redis images in compose); the rest are hivemap services."""
-    router_ep = settings.zenoh.connect[0] if settings.zenoh.connect else "tcp/127.0.0.1:7447"
+    router_ep = settings.zenoh.connect[0] if settings.zenoh.connect else DEFAULT_ROUTER
     common = {
         "HIVEMAP_ZENOH__MODE": "client",
         "HIVEMAP_ZENOH__CONNECT": json.dumps([router_ep]),
@@ -84,24 +84,70 @@ def _hivemap_exe() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "services.cli"]
 
 
+def tcp_host_port(endpoint: str) -> tuple[str, int]:
+    """``tcp/HOST:PORT`` -> (HOST, PORT); a clear error for anything else."""
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.rpartition(":")
+    if proto != "tcp" or not host or not port.isdigit():
+        raise ValueError(f"router endpoint {endpoint!r} is not tcp/HOST:PORT")
+    return host.strip("[]"), int(port)
+
+
+def check_free(host: str, port: int, what: str, hint: str) -> None:
+    """Fail before starting anything when a fixed port is taken: otherwise the router
+    would exit while the launcher's readiness check found the other process listening,
+    and agents would talk to whoever holds the port."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        # As a listening server binds: a port in TIME_WAIT is free, a listener is not.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            raise PortInUse(f"{what} {host}:{port} is not free ({e.strerror}); {hint}") from None
+
+
+class PortInUse(RuntimeError):
+    pass
+
+
 class Stack:
-    """Starts the plan's processes and stops them all, in reverse order."""
+    """Starts the plan's processes and stops them all, in reverse order.
+
+    ``listen`` is the router's endpoint; None picks a free port (tests and benches run
+    several stacks side by side), ``hivemap up`` passes tcp/127.0.0.1:7447, where
+    agents look by default."""
 
     def __init__(
-        self, settings: Settings, data_dir: str | None = None, env: dict[str, str] | None = None
+        self,
+        settings: Settings,
+        data_dir: str | None = None,
+        env: dict[str, str] | None = None,
+        listen: str | None = None,
     ) -> None:
         self.settings = settings
         self.data_dir = data_dir
         self.env = dict(env or {})  # extra HIVEMAP_* variables for every service
+        self.listen = listen
         self.redis: RedisServer | None = None
         self.procs: list[tuple[str, subprocess.Popen]] = []
 
     def start(self, with_api: bool = True) -> None:
         s = self.settings
+        if self.listen is not None:
+            host, port = tcp_host_port(self.listen)
+            check_free(host, port, "router endpoint", "is another `hivemap up` running? "
+                       "Stop it or pick another with --listen")  # fmt: skip
+            endpoint = self.listen
+        else:
+            host, port = "127.0.0.1", free_port()
+            endpoint = f"tcp/{host}:{port}"
+        if with_api:
+            check_free(s.api_host, s.api_port, "API address",
+                       "set HIVEMAP_API_PORT to use another port")  # fmt: skip
         self.redis = RedisServer(data_dir=self.data_dir, persist=self.data_dir is not None)
         redis_url = self.redis.start()
-        port = free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
         self.settings = s.model_copy(
             update={"redis_url": redis_url,
                     "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]})}
@@ -114,7 +160,7 @@ class Stack:
             proc = subprocess.Popen(argv, env=env, start_new_session=True)
             self.procs.append((spec.name, proc))
             if spec.name == "router":
-                _wait_port("127.0.0.1", port, 15.0)
+                _wait_port(host, port, 15.0)
         if with_api:
             _wait_port(self.settings.api_host, self.settings.api_port, 30.0)
 
@@ -212,26 +258,33 @@ def _print_urls(stack: Stack) -> None:
     print("Ctrl-C stops everything.", flush=True)
 
 
-def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
-    stop = _stop_on_signal()
-    stack = Stack(settings, data_dir=args.data_dir)
+def _start_or_explain(stack: Stack) -> bool:
     try:
         stack.start()
+    except (PortInUse, ValueError) as e:
+        stack.stop()
+        print(f"hivemap: {e}", file=sys.stderr)
+        return False
     except Exception:
         stack.stop()
         raise
+    return True
+
+
+def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
+    stop = _stop_on_signal()
+    stack = Stack(settings, data_dir=args.data_dir, listen=args.listen)
+    if not _start_or_explain(stack):
+        return 2
     _print_urls(stack)
     return _run_until_signal(stack, stop)
 
 
 def cmd_demo(args: argparse.Namespace, settings: Settings) -> int:
     stop = _stop_on_signal()
-    stack = Stack(settings, data_dir=args.data_dir)
-    try:
-        stack.start()
-    except Exception:
-        stack.stop()
-        raise
+    stack = Stack(settings, data_dir=args.data_dir, listen=args.listen)
+    if not _start_or_explain(stack):
+        return 2
     _print_urls(stack)
     for i, seq in enumerate(args.trajs.split(",")):
         agent = f"agent{i + 1}"
@@ -264,12 +317,14 @@ def cmd_router(args: argparse.Namespace, settings: Settings) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="start router, redis and every service on this machine")
     p.add_argument("--data-dir", default=None, help="keep Redis data here (append-only file)")
+    _add_listen(p)
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("demo", help="`up` plus simulated agents flying EuRoC MH trajectories")
     p.add_argument("--trajs", default="MH01,MH02,MH03")
     p.add_argument("--speed", type=float, default=1.0, help="real-time factor")
     p.add_argument("--data-dir", default=None)
+    _add_listen(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("router", help="a Zenoh router in this Python process")
@@ -277,7 +332,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=lambda a, s: cmd_router(_default_listen(a), s))
 
 
+def _add_listen(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--listen", default=DEFAULT_ROUTER,
+                   help=f"the Zenoh router's endpoint (default {DEFAULT_ROUTER}, where "
+                   "`hivemap agent` looks unless given --server)")  # fmt: skip
+
+
 def _default_listen(args: argparse.Namespace) -> argparse.Namespace:
     if not args.listen:
-        args.listen = ["tcp/127.0.0.1:7447"]
+        args.listen = [DEFAULT_ROUTER]
     return args

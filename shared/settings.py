@@ -10,10 +10,15 @@ from __future__ import annotations
 from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+# Where `hivemap up` runs its router and where an agent looks for one unless told:
+# the two must agree, or an agent flies a whole mission beside a server that never
+# sees it.
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
 
 class ZenohSettings(BaseModel):
     mode: str = "client"
-    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER])
     listen: list[str] = Field(default_factory=list)
     scouting: bool = False
     # -1: keep retrying to reach the router instead of failing at open().

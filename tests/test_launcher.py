@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -68,9 +69,15 @@ def _stop(proc: subprocess.Popen) -> set[int]:
     return {p for p in kids if _alive(p)}
 
 
+def _listen() -> list[str]:
+    """A free router endpoint: other stacks on this machine may hold the default one."""
+    return ["--listen", f"tcp/127.0.0.1:{free_port()}"]
+
+
 def test_up_serves_and_sigterm_leaves_no_orphans():
     port = free_port()
-    proc = subprocess.Popen([HIVEMAP, "up"], env=_env(port), stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([HIVEMAP, "up", *_listen()], env=_env(port), stdout=subprocess.PIPE,
+                            text=True)  # fmt: skip
     try:
         deadline = time.monotonic() + 60
         health = None
@@ -94,7 +101,7 @@ def test_sigterm_while_starting_still_stops_everything():
     """A signal before the stack is fully up must not kill the launcher outright and
     orphan the children it already started."""
     proc = subprocess.Popen(
-        [HIVEMAP, "up"], env=_env(free_port()), stdout=subprocess.PIPE, text=True
+        [HIVEMAP, "up", *_listen()], env=_env(free_port()), stdout=subprocess.PIPE, text=True
     )
     seen: set[int] = set()
     deadline = time.monotonic() + 30
@@ -110,7 +117,8 @@ def test_sigterm_while_starting_still_stops_everything():
 @pytest.mark.slow
 def test_demo_lists_three_moving_agents_within_30_s():
     port = free_port()
-    proc = subprocess.Popen([HIVEMAP, "demo"], env=_env(port), stdout=subprocess.DEVNULL)
+    proc = subprocess.Popen([HIVEMAP, "demo", *_listen()], env=_env(port),
+                            stdout=subprocess.DEVNULL)  # fmt: skip
     t0 = time.monotonic()
     try:
         first: dict[str, list[float]] = {}
@@ -136,3 +144,90 @@ def test_demo_lists_three_moving_agents_within_30_s():
     finally:
         left = _stop(proc)
     assert not left
+
+
+def test_up_listens_where_agents_look_by_default(monkeypatch):
+    """`hivemap up`'s router endpoint and API address are the ones `hivemap agent` and a
+    browser use when told nothing."""
+    from services.cli import build_parser
+    from shared.settings import DEFAULT_ROUTER, Settings
+
+    for k in list(os.environ):
+        if k.startswith("HIVEMAP_"):
+            monkeypatch.delenv(k)
+    up = build_parser().parse_args(["up"])
+    agent = build_parser().parse_args(["agent", "--id", "A", "--source", "synthetic:MH01"])
+    s = Settings()
+    assert up.listen == DEFAULT_ROUTER == "tcp/127.0.0.1:7447"
+    assert not agent.server and s.zenoh.connect == [up.listen]
+    assert (s.api_host, s.api_port) == ("127.0.0.1", 8000)
+
+
+def _port_free(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def test_agent_without_server_flag_joins_hivemap_up(tmp_path):
+    """`hivemap up`, then `hivemap agent` with no --server: the server sees the agent.
+    The defaults themselves when 7447 is free; else (another stack holds it) the same
+    endpoint given to both through the setting the agent's default comes from."""
+    api = free_port()
+    env = _env(api)
+    for k in [k for k in env if k.startswith("HIVEMAP_ZENOH__")]:
+        del env[k]
+    up_argv = [HIVEMAP, "up"]
+    if not _port_free(7447):
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        up_argv += ["--listen", ep]
+        env["HIVEMAP_ZENOH__CONNECT"] = json.dumps([ep])
+    proc = subprocess.Popen(up_argv, env=env, stdout=subprocess.PIPE, text=True, cwd=tmp_path)
+    agent = None
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                _get(f"http://127.0.0.1:{api}/health")
+                break
+            except OSError:
+                time.sleep(0.3)
+        agent = subprocess.Popen(
+            [HIVEMAP, "agent", "--id", "A", "--source", "synthetic:MH01?frames=0:300",
+             "--out", str(tmp_path / "out")],
+            env={**env, "HIVEMAP_LOG_LEVEL": "WARNING"}, stdout=subprocess.DEVNULL,
+        )  # fmt: skip
+        seen: list[str] = []
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and "A" not in seen and agent.poll() is None:
+            with contextlib.suppress(OSError):
+                seen = [a["agent"] for a in _get(f"http://127.0.0.1:{api}/agents")]
+            time.sleep(0.5)
+        if "A" not in seen:  # the agent may have finished between two polls
+            seen = [a["agent"] for a in _get(f"http://127.0.0.1:{api}/agents")]
+        assert "A" in seen, f"GET /agents: {seen}"
+    finally:
+        if agent is not None and agent.poll() is None:
+            agent.terminate()
+            agent.wait(60)
+        left = _stop(proc)
+    assert not left
+
+
+def test_up_refuses_a_taken_router_port():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run([HIVEMAP, "up", "--listen", f"tcp/127.0.0.1:{port}"],
+                           env=_env(free_port()), capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert r.returncode == 2
+    assert f"127.0.0.1:{port} is not free" in r.stderr and "--listen" in r.stderr
