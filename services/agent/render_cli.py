@@ -15,7 +15,13 @@ from shared.settings import Settings
 
 
 def write_euroc(
-    out: Path, seq: str, seed: int, every: int, frames: str, quiet: bool = False
+    out: Path,
+    seq: str,
+    seed: int,
+    every: int,
+    frames: str,
+    quiet: bool = False,
+    shutter=None,
 ) -> int:
     import cv2
 
@@ -23,7 +29,7 @@ def write_euroc(
 
     from .sources import SyntheticSource
 
-    src = SyntheticSource(seq, seed, every, frames)
+    src = SyntheticSource(seq, seed, every, frames, shutter, cache_dir="")
     cam_dir = out / "mav0" / "cam0"
     (cam_dir / "data").mkdir(parents=True, exist_ok=True)
     (cam_dir / "sensor.yaml").write_text(src.camera.to_euroc_yaml())
@@ -50,7 +56,11 @@ def cmd_render(args: argparse.Namespace, settings: Settings) -> int:
     from .sources import SourceError
 
     try:
-        n = write_euroc(Path(args.out), args.traj, args.seed, args.every, args.frames)
+        from shared.synthetic.render import Shutter
+
+        sh = Shutter(args.blur, args.rolling, args.exposure)
+        n = write_euroc(Path(args.out), args.traj, args.seed, args.every, args.frames,
+                        shutter=sh)  # fmt: skip
     except SourceError as e:
         print(f"hivemap sim render: {e}", file=sys.stderr)
         return 2
@@ -67,4 +77,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--seed", type=int, default=0, help="world seed")
     r.add_argument("--every", type=int, default=1, help="keep every K-th frame")
     r.add_argument("--frames", default="", help="A:B frame range")
+    r.add_argument(
+        "--blur",
+        type=float,
+        default=0.0,
+        help="motion blur: shutter time as a fraction of the frame interval",
+    )
+    r.add_argument(
+        "--rolling",
+        type=float,
+        default=0.0,
+        help="rolling shutter: readout time as a fraction of the frame interval",
+    )
+    r.add_argument("--exposure", type=float, default=0.0, help="auto-exposure jumps, strength 0..1")
     r.set_defaults(func=cmd_render)

@@ -4,7 +4,10 @@
     tum:PATH[?calib=FILE]      TUM mono folder: rgb.txt + images, calibration yaml
                                (default PATH/camera.yaml)
     video:FILE[?calib=FILE]    a video file, calibration yaml (default FILE.yaml)
-    synthetic:MH01[?seed=S&every=K&frames=A:B]   rendered on the fly, with ground truth
+    synthetic:MH01[?seed=S&every=K&frames=A:B&blur=F&rolling=F&exposure=F&samples=N&cache=DIR]
+                               rendered on the fly, with ground truth; blur: shutter
+                               time, rolling: readout time (fractions of the frame
+                               interval), exposure: auto-exposure jump strength (0-1)
 
 Calibration files use the EuRoC sensor.yaml keys (camera_model pinhole,
 intrinsics, distortion_coefficients radial-tangential, resolution). Every problem
@@ -14,6 +17,7 @@ raises :class:`SourceError` naming the file.
 from __future__ import annotations
 
 import csv
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +27,7 @@ import cv2
 import numpy as np
 
 from shared.camera import CalibrationError, PinholeRadTan
+from shared.synthetic.render import Shutter
 from shared.trajectory import Trajectory, load_euroc_gt
 
 
@@ -180,9 +185,17 @@ class VideoSource(ImageSource):
 
 
 class SyntheticSource(ImageSource):
-    """Renders the synthetic world along a real EuRoC trajectory, on the fly."""
+    """Renders the synthetic world along a real EuRoC trajectory, on the fly.
 
-    def __init__(self, seq: str, seed: int = 0, every: int = 1, frames: str = "") -> None:
+    ``shutter`` turns on motion blur, rolling shutter and auto-exposure jumps (see
+    :class:`shared.synthetic.render.Shutter`); the poses inside an exposure come from
+    the ground truth, interpolated. Rendered frames are kept on disk (``cache_dir``,
+    default ``$HIVEMAP_RENDER_CACHE`` or ~/.cache/hivemap/renders; ``""`` turns it off):
+    a frame is a pure function of its key, and a blurred one costs several warps.
+    """
+
+    def __init__(self, seq: str, seed: int = 0, every: int = 1, frames: str = "",
+                 shutter: Shutter | None = None, cache_dir: str | None = None) -> None:  # fmt: skip
         from shared.synthetic.render import Renderer
         from shared.synthetic.world import World
 
@@ -191,21 +204,93 @@ class SyntheticSource(ImageSource):
         except ValueError as e:
             raise SourceError(str(e)) from e
         sl = _slice(frames)
-        idx = np.arange(len(gt))[sl][:: max(1, every)]
+        every = max(1, every)
+        idx = np.arange(len(gt))[sl][::every]
         self.index = idx
+        self.full_gt = gt
         self.ground_truth = Trajectory(gt.stamps_ns[idx], gt.poses[idx])
         self.renderer = Renderer(World(seed))
         self.camera = self.renderer.cam
+        self.seq, self.seed, self.every = seq, seed, every
+        self.shutter = shutter or Shutter()
+        if self.shutter.blur < 0 or self.shutter.rolling < 0 or self.shutter.exposure < 0:
+            raise SourceError(f"synthetic:{seq}: blur, rolling and exposure must be >= 0")
+        self.frame_dt = float(np.median(np.diff(gt.stamps_ns))) * 1e-9 * every
         self.name = f"synthetic:{seq}?seed={seed}"
+        if cache_dir is None:
+            cache_dir = os.environ.get(
+                "HIVEMAP_RENDER_CACHE", str(Path.home() / ".cache" / "hivemap" / "renders")
+            )
+        self.cache = self._cache_path(Path(cache_dir)) if cache_dir else None
+
+    def _cache_path(self, root: Path) -> Path:
+        sh = self.shutter
+        # A sharp frame is the same at any frame rate; a blurred one spans a share of
+        # the frame interval, which depends on ``every``.
+        motion = "" if sh.blur <= 0 and sh.rolling <= 0 else f"-e{self.every}"
+        return root / f"v{RENDER_VERSION}-{self.seq}-s{self.seed}-{sh.tag()}{motion}"
 
     def __len__(self) -> int:
         return len(self.index)
 
+    def _pose_at(self, k: int):
+        gt = self.full_gt
+        t0 = float(gt.stamps_ns[k]) * 1e-9
+
+        def pose_at(tau: float) -> np.ndarray:
+            return interpolate_pose(gt, t0 + tau)
+
+        return pose_at
+
+    def render(self, i: int) -> np.ndarray:
+        k = int(self.index[i])
+        if self.cache is not None:
+            path = self.cache / f"{k}.png"
+            if path.is_file():
+                img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+                if img is not None and img.shape == (self.camera.height, self.camera.width):
+                    return img
+        if self.shutter.off:
+            img, _ = self.renderer.render(self.ground_truth.poses[i], k)
+        else:
+            from shared.synthetic.render import exposure_gain
+
+            t = (self.full_gt.stamps_ns[k] - self.full_gt.stamps_ns[0]) * 1e-9
+            g = float(exposure_gain(self.seed, t, self.shutter.exposure)[0])
+            img, _ = self.renderer.render_exposure(self._pose_at(k), self.frame_dt, k,
+                                                   self.shutter, g)  # fmt: skip
+        if self.cache is not None:
+            self.cache.mkdir(parents=True, exist_ok=True)
+            tmp = self.cache / f".{k}.{os.getpid()}.png"
+            # Written aside and renamed: a reader in another process never sees half a file.
+            if cv2.imwrite(str(tmp), img):
+                os.replace(tmp, self.cache / f"{k}.png")
+        return img
+
     def __iter__(self) -> Iterator[Frame]:
         gt = self.ground_truth
-        for i, k in enumerate(self.index.tolist()):
-            img, _ = self.renderer.render(gt.poses[i], k)
-            yield Frame(i, int(gt.stamps_ns[i]), img)
+        for i in range(len(self.index)):
+            yield Frame(i, int(gt.stamps_ns[i]), self.render(i))
+
+
+# Bump when the renderer's output changes, so cached frames of the old one are not used.
+RENDER_VERSION = 1
+
+
+def interpolate_pose(gt: Trajectory, t_s: float) -> np.ndarray:
+    """T_w_c at time ``t_s`` (seconds): slerp between the neighbouring ground-truth
+    poses, clamped at the ends."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    st = gt.stamps_ns * 1e-9
+    j = int(np.clip(np.searchsorted(st, t_s), 1, len(st) - 1))
+    a, b = st[j - 1], st[j]
+    u = float(np.clip((t_s - a) / (b - a), 0.0, 1.0)) if b > a else 0.0
+    Ra, Rb = gt.poses[j - 1, :3, :3], gt.poses[j, :3, :3]
+    T = np.eye(4)
+    T[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([Ra, Rb])))(u).as_matrix()
+    T[:3, 3] = (1 - u) * gt.poses[j - 1, :3, 3] + u * gt.poses[j, :3, 3]
+    return T
 
 
 def _slice(spec: str) -> slice:
@@ -224,7 +309,7 @@ def open_source(spec: str) -> ImageSource:
         raise SourceError(f"source {spec!r}: expected euroc:PATH, tum:PATH, video:FILE or "
                           "synthetic:MH01")  # fmt: skip
     target, _, query = rest.partition("?")
-    q = {k: v[-1] for k, v in parse_qs(query).items()}
+    q = {k: v[-1] for k, v in parse_qs(query, keep_blank_values=True).items()}
     if kind == "euroc":
         return EurocSource(target)
     if kind == "tum":
@@ -233,8 +318,10 @@ def open_source(spec: str) -> ImageSource:
         return VideoSource(target, q.get("calib"))
     if kind == "synthetic":
         try:
+            sh = Shutter(float(q.get("blur", 0)), float(q.get("rolling", 0)),
+                         float(q.get("exposure", 0)), int(q.get("samples", 0)))  # fmt: skip
             return SyntheticSource(target, int(q.get("seed", 0)), int(q.get("every", 1)),
-                                   q.get("frames", ""))  # fmt: skip
+                                   q.get("frames", ""), sh, q.get("cache"))  # fmt: skip
         except ValueError as e:
             if isinstance(e, SourceError):
                 raise

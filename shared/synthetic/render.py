@@ -11,10 +11,15 @@ the whole canvas with one precomputed ``cv2.remap``. No per-pixel Python loop.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from shared.camera import PinholeRadTan
+from shared.geometry import se3_inv as _se3_inv
 
 from .texture import TEX_PX, TextureCache
 from .world import World
@@ -22,6 +27,58 @@ from .world import World
 NEAR = 0.05
 FAR = 45.0
 LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+
+
+@dataclass(frozen=True)
+class Shutter:
+    """How the camera takes a frame (all off: an ideal instantaneous global shutter).
+
+    blur: exposure time as a fraction of the frame interval (motion blur);
+    rolling: readout time of the whole frame as a fraction of the frame interval;
+    exposure: strength of auto-exposure jumps (0 off, 1: the gain jumps by up to
+        +-45 % a few times a minute and the camera's loop pulls it back within ~0.5 s);
+    samples: poses averaged inside the exposure (0: from the motion, ~2 px apart).
+    """
+
+    blur: float = 0.0
+    rolling: float = 0.0
+    exposure: float = 0.0
+    samples: int = 0
+
+    @property
+    def off(self) -> bool:
+        return self.blur <= 0 and self.rolling <= 0 and self.exposure <= 0
+
+    def tag(self) -> str:
+        return f"b{self.blur:g}-r{self.rolling:g}-x{self.exposure:g}-n{self.samples}"
+
+
+def exposure_gain(seed: int, t_s: np.ndarray | float, strength: float,
+                  rate_hz: float = 0.07, settle_s: float = 0.15) -> np.ndarray:  # fmt: skip
+    """Auto-exposure jumps: at Poisson instants (``rate_hz``; seeded) the gain steps by a
+    factor of up to 1 +- 0.45 * strength, then decays back with time constant
+    ``settle_s`` -- what a camera's exposure loop does when a bright light enters the
+    view. A deterministic function of time, so every frame rate sees the same light."""
+    t = np.atleast_1d(np.asarray(t_s, np.float64))
+    if strength <= 0:
+        return np.ones_like(t)
+    rng = np.random.default_rng([seed, 4241])
+    horizon = float(t.max()) + 1.0
+    n = rng.poisson(rate_hz * horizon) + 1
+    when = np.sort(rng.uniform(0, horizon, n))
+    mag = rng.uniform(0.25, 0.45, n) * strength * rng.choice([-1.0, 1.0], n)
+    g = np.zeros_like(t)
+    for w, m in zip(when, mag, strict=True):
+        dt = t - w
+        g += np.where(dt >= 0, m * np.exp(-np.maximum(dt, 0) / settle_s), 0.0)
+    return np.clip(1.0 + g, 0.3, 2.0)
+
+
+def _interp_rows(Ts: np.ndarray, knots: np.ndarray, row_t: np.ndarray):
+    """Rotation (slerp) and translation (linear) at each row time between pose knots."""
+    R = Slerp(knots, Rotation.from_matrix(Ts[:, :3, :3]))(row_t).as_matrix()
+    t = np.stack([np.interp(row_t, knots, Ts[:, i, 3]) for i in range(3)], 1)
+    return R, t.astype(np.float32)
 
 
 class Renderer:
@@ -82,6 +139,72 @@ class Renderer:
 
     def render(self, T_w_c: np.ndarray, frame: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(image uint8 HxW, depth float32 HxW in metres along the optical axis)."""
+        canvas, invz = self._raster(T_w_c)
+        return self._finish(canvas, invz, frame)
+
+    def render_exposure(self, pose_at: Callable[[float], np.ndarray], frame_dt: float,
+                        frame: int, shutter: Shutter, gain: float = 1.0,
+                        ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """A frame taken with a real shutter around time 0 (seconds, relative).
+
+        ``pose_at(tau)`` gives T_w_c at ``tau`` seconds from the frame's timestamp. The
+        scene is rasterized once, at the timestamp; the exposure is then the mean of
+        the canvas warped to several poses spread over the shutter time, centred on the
+        timestamp (``shutter.blur`` of the frame interval), each row at its own time
+        when the shutter rolls (``shutter.rolling``: readout of the whole frame, as a
+        fraction of the frame interval, top row first). The warp moves each pixel with
+        the depth seen at the timestamp, which is exact for the small motions inside
+        one exposure except at occlusion edges. ``gain`` scales the light (auto-exposure).
+        """
+        T_c = pose_at(0.0)
+        canvas, invz = self._raster(T_c)
+        t_exp = shutter.blur * frame_dt
+        t_rs = shutter.rolling * frame_dt
+        if t_exp <= 0 and t_rs <= 0:
+            return self._finish(canvas * np.float32(gain), invz, frame)
+        n = shutter.samples or self._samples(pose_at, T_c, invz, t_exp)
+        taus = (np.arange(n) + 0.5) / n * t_exp - t_exp / 2 if t_exp > 0 else np.zeros(1)
+        # Row r is read (r / H - 1/2) * t_rs after the centre row.
+        row_t = (np.arange(self.ch, dtype=np.float64) / self.ch - 0.5) * t_rs
+        z = np.where(invz > 0, 1.0 / np.maximum(invz, 1e-9), FAR).astype(np.float32)
+        X = np.stack([self._xn * z, self._yn * z, z], axis=-1)  # canvas pixels, camera frame
+        Tc_inv = _se3_inv(T_c)
+        acc = np.zeros_like(canvas)
+        for tau in taus.tolist():
+            if t_rs > 0:
+                # Poses at a few row times, interpolated between: rows change slowly.
+                knots = np.linspace(row_t[0], row_t[-1], 9)
+                Ts = np.stack([Tc_inv @ pose_at(tau + k) for k in knots])
+                R, t = _interp_rows(Ts, knots, row_t)
+                Xc = np.einsum("rij,rwj->rwi", R.astype(np.float32), X) + t[:, None, :]
+            else:
+                T = Tc_inv @ pose_at(tau)
+                Xc = X @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)
+            zc = np.maximum(Xc[..., 2], NEAR)
+            mx = (self.fx * Xc[..., 0] / zc + self.cx).astype(np.float32)
+            my = (self.fy * Xc[..., 1] / zc + self.cy).astype(np.float32)
+            acc += cv2.remap(canvas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        return self._finish(acc * np.float32(gain / len(taus)), invz, frame)
+
+    def _samples(self, pose_at, T_c: np.ndarray, invz: np.ndarray, t_exp: float) -> int:
+        """Enough poses that neighbouring copies are ~2 px apart (a smooth streak; at most
+        12, past which the streak is long enough that tracking sees it as a smear)."""
+        if t_exp <= 0:
+            return 1
+        g = invz[::24, ::24]
+        z = np.where(g > 0, 1.0 / np.maximum(g, 1e-9), FAR)
+        X = np.stack([self._xn[::24, ::24] * z, self._yn[::24, ::24] * z, z], -1).reshape(-1, 3)
+        uv = []
+        for tau in (-t_exp / 2, t_exp / 2):
+            T = _se3_inv(T_c) @ pose_at(tau)
+            Xc = X @ T[:3, :3].T + T[:3, 3]
+            zc = np.maximum(Xc[:, 2], NEAR)
+            uv.append(np.stack([self.fx * Xc[:, 0] / zc, self.fy * Xc[:, 1] / zc], 1))
+        streak = float(np.percentile(np.linalg.norm(uv[1] - uv[0], axis=1), 95))
+        return int(np.clip(np.ceil(streak / 2.0) + 1, 2, 12))
+
+    def _raster(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal pinhole canvas (radiance) and its inverse depth."""
         canvas = np.zeros((self.ch, self.cw), np.float32)
         invz = np.zeros((self.ch, self.cw), np.float32)
         w = self.world
@@ -143,6 +266,10 @@ class Renderer:
             shade = w.tiles[i].albedo * (0.6 + 0.4 * max(float(n @ LIGHT), 0.0))
             np.copyto(canvas[sl], warped * np.float32(shade), where=win)
             np.copyto(invz[sl], iz, where=win)
+        return canvas, invz
+
+    def _finish(self, canvas: np.ndarray, invz: np.ndarray, frame: int):
+        """Lens distortion, exposure drift and sensor noise of a radiance canvas."""
         img = cv2.remap(canvas, self.map1, self.map2, cv2.INTER_LINEAR)
         iz = cv2.remap(invz, self.map1, self.map2, cv2.INTER_NEAREST)
         depth = np.where(iz > 0, 1.0 / np.maximum(iz, 1e-9), 0.0).astype(np.float32)
