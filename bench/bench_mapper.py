@@ -34,8 +34,8 @@ from common import table, write_report  # noqa: E402
 
 from services import launcher  # noqa: E402
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
-from services.runtime import set_priority  # noqa: E402
 from shared.redis_server import free_port  # noqa: E402
+from shared.runtime import set_priority  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 from shared.trajectory import SEQUENCES, Trajectory, ate, load_euroc_gt  # noqa: E402
 
@@ -108,7 +108,7 @@ def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dic
         ) + ["--frames", f"0:{int(seconds * 20)}", "--out", str(out)]  # fmt: skip
         # The agents fly on robots in a deployment; here they share the server's 2 cores,
         # so they run at nice 10 as in bench_team.py (their own clocks still time acks).
-        # (In a session of their own: see services.runtime.set_priority.)
+        # (In a session of their own: see shared.runtime.set_priority.)
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]

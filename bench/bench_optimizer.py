@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common import table, write_report  # noqa: E402
 
+from services.mapper.capture import request_from_map  # noqa: E402
 from services.mapper.correction import apply_correction  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint  # noqa: E402
 from services.optimizer.global_ba import (  # noqa: E402
@@ -39,8 +40,8 @@ from services.optimizer.global_ba import (  # noqa: E402
     reprojection,
 )
 from services.optimizer.pose_graph import apply_to_snapshot, optimize_pose_graph  # noqa: E402
-from services.optimizer.snapshot import MapSnapshot, snapshot_from_map  # noqa: E402
 from shared.geometry import exp_so3, se3_inv, umeyama  # noqa: E402
+from shared.messages import OptimizeRequest  # noqa: E402
 from shared.synthetic.world import World  # noqa: E402
 from shared.trajectory import load_euroc_gt  # noqa: E402
 
@@ -52,7 +53,7 @@ HALF_W, HALF_H = 376.0 / FX, 240.0 / FX  # EuRoC cam0 field of view in normalize
 
 @dataclass
 class Scene:
-    snap: MapSnapshot
+    snap: OptimizeRequest
     T_true: np.ndarray  # (K, 4, 4) true camera-to-world
     p_true: np.ndarray  # (M, 3) true positions of the map points
     outlier: np.ndarray  # (O,) bool, gross outliers injected
@@ -209,9 +210,11 @@ def make_scene(
     mp_pos = np.einsum("nij,nj->ni", T_est[r, :3, :3], X_ref) + T_est[r, :3, 3]
     p_true = L[olm[ref_obs]]
 
-    snap = MapSnapshot(
+    snap = OptimizeRequest(
         map_id=f"bench-{seq}",
         version=1,
+        reason="bench",
+        sent_ns=0,
         kf_gids=np.arange(n_kf, dtype=np.int64),
         T_m_kf=T_est,
         fixed_gids=np.array([0], np.int64),
@@ -230,7 +233,7 @@ def make_scene(
     return Scene(snap, T_true, p_true, outlier, sigma)
 
 
-def to_server_map(snap: MapSnapshot) -> ServerMap:
+def to_server_map(snap: OptimizeRequest) -> ServerMap:
     """The scene as a live ServerMap (to time the copy-out and the write-back)."""
     m = ServerMap(snap.map_id)
     for g, p, r in zip(snap.mp_gids.tolist(), snap.mp_pos, snap.mp_ref.tolist(), strict=True):
@@ -344,7 +347,7 @@ def main() -> None:
     smap = to_server_map(snap)
     loops = [(int(a), int(b), S) for (a, b), S in zip(snap.loops, snap.S_loop, strict=True)]
     t0 = time.perf_counter()
-    snap_copy = snapshot_from_map(smap, loops)
+    snap_copy = request_from_map(smap, loops)
     t_snap = time.perf_counter() - t0
     t0 = time.perf_counter()
     applied = apply_correction(smap, ba)

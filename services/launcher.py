@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from services.runtime import set_priority
 from shared.redis_server import RedisServer, free_port
+from shared.runtime import set_priority
 from shared.settings import DEFAULT_ROUTER, Settings
 
 log = logging.getLogger(__name__)

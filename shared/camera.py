@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 import yaml
 
+EUROC_FX = 458.654  # EuRoC cam0's focal length, the project's default camera
+
 
 class CalibrationError(ValueError):
     """A calibration file is missing, unreadable or not a pinhole/radtan camera."""
@@ -119,7 +121,7 @@ class PinholeRadTan:
     @staticmethod
     def euroc_cam0() -> PinholeRadTan:
         return PinholeRadTan(
-            752, 480, 458.654, 457.296, 367.215, 248.375,
+            752, 480, EUROC_FX, 457.296, 367.215, 248.375,
             -0.28340811, 0.07395907, 0.00019359, 1.76187114e-05,
         )  # fmt: skip
 

@@ -37,6 +37,8 @@ def _default(obj: Any) -> Any:
         return int(obj)
     if isinstance(obj, np.floating):
         return float(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
@@ -576,7 +578,19 @@ class Match(_Record):
 class OptimizeRequest(_Record):
     """Mapper -> optimizer on ``hivemap/map/{map}/optimize``: a copy of the map to
     optimize (CCM-SLAM: the optimization works on a copy so ingestion goes on). A newer
-    request for the same map supersedes one in progress."""
+    request for the same map supersedes one in progress. The optimizer's algorithms
+    take this message as it is (``services/mapper/capture.py`` builds it).
+
+    Conventions (every 4x4 is float64):
+    - ``T_m_kf``: SE(3), camera to map (``p_m = R p_kf + t``).
+    - ``fixed_gids``: gauge keyframes; ``edges``: spanning tree + strong covisibility.
+    - ``S_loop[i]`` for loop edge ``loops[i] = (a, b)``: Sim(3) ``S_a_b`` as
+      ``[[s R, t], [0, 1]]``, mapping points in keyframe b's camera frame into keyframe
+      a's camera frame (``p_a = s R p_b + t``).
+    - ``mp_ref``: gid of each point's reference keyframe; ``obs_kf``/``obs_mp`` index
+      ``kf_gids``/``mp_gids``; ``obs_xy``: undistorted normalized image coordinates;
+      ``fx``: focal length in pixels (observation noise is 1.2**octave / fx).
+    """
 
     SCHEMA: ClassVar[str] = "hivemap.optimize/1"
     FIELDS: ClassVar[dict[str, Any]] = {
@@ -608,13 +622,57 @@ class OptimizeRequest(_Record):
     obs_xy: np.ndarray
     obs_octave: np.ndarray
 
+    @property
+    def n_kf(self) -> int:
+        return len(self.kf_gids)
+
+    def kf_index(self) -> dict[int, int]:
+        return {int(g): i for i, g in enumerate(self.kf_gids.tolist())}
+
+    def check(self) -> list[str]:
+        """Index consistency beyond what ``decode`` checks (gids unique, edges, loops,
+        gauge and observations naming what the copy holds); returns the problems."""
+        errs = []
+        K, M, O = len(self.kf_gids), len(self.mp_gids), len(self.obs_kf)
+        if self.T_m_kf.shape != (K, 4, 4):
+            errs.append(f"T_m_kf shape {self.T_m_kf.shape}, expected {(K, 4, 4)}")
+        if self.mp_pos.shape != (M, 3) or self.mp_ref.shape != (M,):
+            errs.append("mp_pos / mp_ref shape")
+        if (
+            self.obs_mp.shape != (O,)
+            or self.obs_xy.shape != (O, 2)
+            or self.obs_octave.shape != (O,)
+        ):
+            errs.append("observation arrays differ in length")
+        if O and (self.obs_kf.min() < 0 or self.obs_kf.max() >= K):
+            errs.append("obs_kf out of range")
+        if O and (self.obs_mp.min() < 0 or self.obs_mp.max() >= M):
+            errs.append("obs_mp out of range")
+        known = set(self.kf_gids.tolist())
+        for name, arr in (("edges", self.edges), ("loops", self.loops)):
+            if arr.size and not set(arr.ravel().tolist()) <= known:
+                errs.append(f"{name} name unknown keyframes")
+        if not set(self.fixed_gids.tolist()) <= known:
+            errs.append("fixed_gids name unknown keyframes")
+        if self.S_loop.shape != (len(self.loops), 4, 4):
+            errs.append("S_loop shape")
+        if len(np.unique(self.kf_gids)) != K or len(np.unique(self.mp_gids)) != M:
+            errs.append("duplicate gids")
+        return errs
+
 
 @dataclass
 class CorrectionMsg(_Record):
     """Optimizer -> mapper on ``hivemap/map/{map}/correction``: optimized keyframe poses
     (SE(3), camera to map) with the Sim(3) scale each got, and point positions.
     The mapper applies it and carries keyframes that arrived meanwhile along through
-    their relative poses (CCM-SLAM Fig. 4)."""
+    their relative poses (CCM-SLAM Fig. 4); the optimizer's algorithms return it.
+
+    ``kf_scale``: the scale ``s`` of each keyframe's optimized camera-to-map Sim(3)
+    ``S_m_kf = [[s R, t], [0, 1]]`` (1 where none); the corrected SE(3) pose is
+    ``[R, t]``. A length measured in the keyframe's camera frame before the correction
+    is ``s`` times as long in the corrected map. ``stats``: numbers, strings and
+    lists/maps of them, for logs."""
 
     SCHEMA: ClassVar[str] = "hivemap.correction/1"
     FIELDS: ClassVar[dict[str, Any]] = {
@@ -636,6 +694,26 @@ class CorrectionMsg(_Record):
     outlier_kf: np.ndarray  # observations the optimization found to be outliers:
     outlier_mp: np.ndarray  # (keyframe gid, map-point gid) pairs
     stats: dict
+
+    @property
+    def outliers(self) -> np.ndarray:
+        """(O, 2) int64 (keyframe gid, map-point gid) pairs."""
+        return np.stack([self.outlier_kf, self.outlier_mp], axis=1).reshape(-1, 2)
+
+    @staticmethod
+    def of(req: OptimizeRequest, T_m_kf: np.ndarray, kf_scale: np.ndarray,
+           mp_pos: np.ndarray, stats: dict | None = None,
+           outliers: np.ndarray | None = None) -> CorrectionMsg:  # fmt: skip
+        """The correction of ``req``'s map copy: same keyframes and points, same order."""
+        out = np.zeros((0, 2), np.int64) if outliers is None else outliers
+        out = np.asarray(out, np.int64).reshape(-1, 2)
+        return CorrectionMsg(
+            map_id=req.map_id, base_version=int(req.version), sent_ns=0,
+            kf_gids=req.kf_gids.astype(np.int64), T_m_kf=np.asarray(T_m_kf, np.float64),
+            kf_scale=np.asarray(kf_scale, np.float64), mp_gids=req.mp_gids.astype(np.int64),
+            mp_pos=np.asarray(mp_pos, np.float64), outlier_kf=out[:, 0].copy(),
+            outlier_mp=out[:, 1].copy(), stats=dict(stats or {}),
+        )  # fmt: skip
 
 
 @dataclass

@@ -12,7 +12,7 @@ from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.mapper.merge import fuse_matched, move_map
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest, gid
 from services.mapper.service import MapperService
-from services.optimizer.service import OptimizerService, Superseded, correction_msg
+from services.optimizer.service import OptimizerService, Superseded
 from shared.geometry import Sim3, exp_so3, se3_inv
 from shared.messages import Ack, Match, OptimizeRequest
 from shared.settings import Settings
@@ -205,7 +205,7 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     sims["A"].traj = Trajectory(np.concatenate([sims["A"].traj.stamps_ns, more.stamps_ns]),
                                 np.concatenate([sims["A"].traj.poses, more.poses]))  # fmt: skip
     _feed(svc, "A", sims["A"])
-    assert svc.collab.on_correction(correction_msg(corr, 0)) is True
+    assert svc.collab.on_correction(corr) is True
     smap = svc.maps[map_id]
     assert smap.check_invariants() == []
     after = _joint_rigid_error(svc, gts, "AB")

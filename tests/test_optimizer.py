@@ -9,6 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from services.mapper.capture import request_from_map as snapshot_from_map
 from services.mapper.correction import apply_correction
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint
 from services.optimizer.global_ba import BAParams, bundle_adjust, optimize_map, reprojection
@@ -19,10 +20,23 @@ from services.optimizer.pose_graph import (
     pose_scale_to_sim3,
     to_gtsam,
 )
-from services.optimizer.snapshot import Correction, MapSnapshot, snapshot_from_map
+from shared.camera import EUROC_FX
 from shared.geometry import Sim3, exp_so3, scale_translation, se3, se3_inv, umeyama
+from shared.messages import CorrectionMsg, OptimizeRequest
 
 FX = 458.0
+
+
+def MapSnapshot(map_id, version, kf_gids, T_m_kf, fixed_gids, edges, loops, S_loop, mp_gids,
+                mp_pos, mp_ref, obs_kf, obs_mp, obs_xy, obs_octave,
+                fx=EUROC_FX) -> OptimizeRequest:  # fmt: skip
+    """The map copy the optimizer takes, in the argument order these tests write."""
+    return OptimizeRequest(
+        map_id=map_id, version=version, reason="test", sent_ns=0, fx=fx, kf_gids=kf_gids,
+        T_m_kf=T_m_kf, fixed_gids=fixed_gids, edges=edges, loops=loops, S_loop=S_loop,
+        mp_gids=mp_gids, mp_pos=mp_pos, mp_ref=mp_ref, obs_kf=obs_kf, obs_mp=obs_mp,
+        obs_xy=obs_xy, obs_octave=obs_octave,
+    )  # fmt: skip
 
 
 def _look_at(c: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -312,7 +326,9 @@ def test_snapshot_from_map_indices_are_consistent():
     assert len(corr.outliers) == 0
 
 
-def _sim_correction(snap: MapSnapshot, G: Sim3, bump: dict[int, Sim3] | None = None) -> Correction:
+def _sim_correction(
+    snap: OptimizeRequest, G: Sim3, bump: dict[int, Sim3] | None = None
+) -> CorrectionMsg:
     """Correction that moves every keyframe by G (per-keyframe override in ``bump``),
     with points riding along with their reference keyframe."""
     idx = snap.kf_index()
@@ -324,8 +340,7 @@ def _sim_correction(snap: MapSnapshot, G: Sim3, bump: dict[int, Sim3] | None = N
     T_new[:, :3, :3] /= scale[:, None, None]
     ref = np.array([idx[int(r)] for r in snap.mp_ref])
     pos = correct_points(snap.mp_pos, ref, snap.T_m_kf, S_new)
-    return Correction(snap.map_id, snap.version, snap.kf_gids.copy(), T_new, scale,
-                      snap.mp_gids.copy(), pos)  # fmt: skip
+    return CorrectionMsg.of(snap, T_new, scale, pos)
 
 
 def test_apply_correction_propagates_to_newer_keyframes_and_points():

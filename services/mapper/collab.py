@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from shared import keys
+from shared.camera import EUROC_FX
 from shared.geometry import Sim3
 from shared.messages import (
     CorrectionMsg,
@@ -50,6 +51,8 @@ from shared.metrics import MAP_SIZE, REJECTED
 from shared.store import P, k_agent, k_kf, k_map, k_map_kfs
 
 from . import persist
+from .capture import build_request, capture_map
+from .correction import apply_correction
 from .merge import (
     LoopConstraint,
     add_loop_edge,
@@ -139,7 +142,7 @@ class Collaboration:
         if kf is None:
             return None
         h = self.svc.handlers.get(kf.agent)
-        fx = h.camera.fx if h is not None else 458.654
+        fx = h.camera.fx if h is not None else EUROC_FX
         return KeyframeEvent(
             map_id, kf.agent, g, kf.id, kf.stamp_ns, kf.T_m_kf.copy(), float(fx),
             kf.xy.astype(np.float64), kf.octaves.astype(np.uint8), kf.descriptors,
@@ -370,8 +373,6 @@ class Collaboration:
             return out
 
     def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
-        from services.optimizer.snapshot import build_snapshot, capture_map
-
         svc = self.svc
         smap = svc.maps.get(map_id)
         if smap is None or len(smap.kfs) < 3:
@@ -386,20 +387,14 @@ class Collaboration:
                          if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                 cap = capture_map(smap, loops)
             t1 = time.perf_counter()
-            snap = build_snapshot(cap, pause=svc.wait_for_batches)
+            req = build_request(cap, reason, pause=svc.wait_for_batches)
         t2 = time.perf_counter()
-        req = OptimizeRequest(
-            map_id, snap.version, reason, time.time_ns(), float(snap.fx), snap.kf_gids,
-            snap.T_m_kf, snap.fixed_gids, snap.edges, snap.loops, snap.S_loop, snap.mp_gids,
-            snap.mp_pos, snap.mp_ref, snap.obs_kf.astype(np.int32),
-            snap.obs_mp.astype(np.int32), snap.obs_xy, snap.obs_octave.astype(np.uint8),
-        )  # fmt: skip
         self._last_request[map_id] = time.monotonic()
         with self._lock:
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
-            self._snap_poses[(map_id, int(snap.version))] = dict(
-                zip(snap.kf_gids.tolist(), snap.T_m_kf.copy(), strict=True)
+            self._snap_poses[(map_id, int(req.version))] = dict(
+                zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
         data = req.encode()
         t3 = time.perf_counter()
@@ -411,7 +406,7 @@ class Collaboration:
         OPT_REQUESTS.labels(reason).inc()
         log.info("optimization requested for %s (%s): %d keyframes, %d loops, %.1f MB; "
                  "capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
-                 map_id, reason, len(snap.kf_gids), len(snap.loops), len(data) / 1e6,
+                 map_id, reason, len(req.kf_gids), len(req.loops), len(data) / 1e6,
                  1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))  # fmt: skip
         return req
 
@@ -425,35 +420,26 @@ class Collaboration:
         return self.on_correction(c)
 
     def on_correction(self, c: CorrectionMsg) -> bool:
-        from services.optimizer.snapshot import Correction
-
-        from .correction import apply_correction
-
         svc = self.svc
         smap = svc.maps.get(c.map_id)
         if smap is None:
             # The map was merged away meanwhile: a request for the merged map follows.
             REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
             return False
-        corr = Correction(
-            map_id=c.map_id, base_version=c.base_version, kf_gids=c.kf_gids, T_m_kf=c.T_m_kf,
-            kf_scale=c.kf_scale, mp_gids=c.mp_gids, mp_pos=c.mp_pos, stats=c.stats,
-            outliers=np.stack([c.outlier_kf, c.outlier_mp], axis=1),
-        )  # fmt: skip
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
         t0 = time.perf_counter()
         with self._opt_lock:
             svc.wait_for_batches()
             with svc.actor(c.map_id).lock:
-                res = apply_correction(smap, corr, snap_poses)
+                res = apply_correction(smap, c, snap_poses)
                 changed_kfs = res.kfs | res.kfs_propagated
                 for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
                     kf, p = smap.kfs.get(kg), smap.mps.get(mg)
                     if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
                         smap._unobserve(kf, p.obs[kg])
                         changed_kfs.add(kg)
-                self._rescale_handlers(smap, corr)
+                self._rescale_handlers(smap, c)
                 pipe = svc.store.pipeline()
                 for h in svc.handlers.values():
                     if h.smap is smap:

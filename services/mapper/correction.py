@@ -22,9 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.mapper.server_map import ServerMap
-from services.optimizer.snapshot import Correction
 from shared.geometry import se3_inv
+from shared.messages import CorrectionMsg
+
+from .server_map import ServerMap
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,7 @@ def _anchor(smap: ServerMap, g: int, corrected: dict, memo: dict[int, int | None
 
 def apply_correction(
     smap: ServerMap,
-    corr: Correction,
+    corr: CorrectionMsg,
     T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
 ) -> AppliedCorrection:
     """Write ``corr`` into ``smap`` (see the module doc). ``T_m_kf_at_snapshot``: the

@@ -8,7 +8,7 @@ from shared.settings import Settings
 
 
 def cmd_optimizer(args: argparse.Namespace, settings: Settings) -> int:
-    from services.runtime import run_service
+    from shared.runtime import run_service
 
     from .service import OptimizerService
 

@@ -37,7 +37,7 @@ from services.optimizer.pose_graph import (
     optimize_pose_graph,
     point_ref_index,
 )
-from services.optimizer.snapshot import Correction, MapSnapshot
+from shared.messages import CorrectionMsg, OptimizeRequest
 from shared.orb import SCALE_FACTOR
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ class ReprojStats:
     err_px: np.ndarray  # (O,) pixel error (inf for points behind the camera)
 
 
-def reprojection(snap_T: np.ndarray, pos: np.ndarray, snap: MapSnapshot) -> ReprojStats:
+def reprojection(snap_T: np.ndarray, pos: np.ndarray, snap: OptimizeRequest) -> ReprojStats:
     """Per-observation pixel error and chi2 of poses ``snap_T`` and points ``pos``."""
     T = snap_T[snap.obs_kf]
     d = pos[snap.obs_mp] - T[:, :3, 3]
@@ -90,7 +90,7 @@ def reprojection(snap_T: np.ndarray, pos: np.ndarray, snap: MapSnapshot) -> Repr
     return ReprojStats((err / sig) ** 2, err)
 
 
-def _gauge_partner(snap: MapSnapshot, fixed: int, kf_ok: np.ndarray, obs_ok: np.ndarray) -> int:
+def _gauge_partner(snap: OptimizeRequest, fixed: int, kf_ok: np.ndarray, obs_ok: np.ndarray) -> int:
     """The keyframe sharing most (used) points with ``fixed`` at a nonzero distance;
     the nearest other keyframe in index order when none shares any."""
     ok = obs_ok.copy()
@@ -106,7 +106,7 @@ def _gauge_partner(snap: MapSnapshot, fixed: int, kf_ok: np.ndarray, obs_ok: np.
     return int(cand[0]) if len(cand) else -1
 
 
-def _select(snap: MapSnapshot, p: BAParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _select(snap: OptimizeRequest, p: BAParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(observation mask, keyframe mask, point mask) of what enters the graph: points
     with enough observations in front of their cameras, keyframes with enough of
     those, repeated once so the two rules agree."""
@@ -168,7 +168,7 @@ def _optimizer(graph, values, ordering, p: BAParams) -> gtsam.LevenbergMarquardt
     return gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
 
 
-def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correction:
+def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> CorrectionMsg:
     """Global BA over ``snap``; returns refined poses and points (keyframes left out of
     the graph keep their pose, points left out move rigidly with their reference
     keyframe), the observations that are still outliers, and stats (iterations, GTSAM
@@ -317,17 +317,7 @@ def bundle_adjust(snap: MapSnapshot, params: BAParams | None = None) -> Correcti
              "rmse %.3f -> %.3f px, %d outliers, %.2f s", snap.map_id, len(cam), len(pts),
              int(obs_ok.sum()), e0, e1, it, stop, stats["ba_rmse_px_initial"],
              stats["ba_rmse_px_final"], int(out.sum()), dt)  # fmt: skip
-    return Correction(
-        map_id=snap.map_id,
-        base_version=snap.version,
-        kf_gids=snap.kf_gids.copy(),
-        T_m_kf=T_new,
-        kf_scale=np.ones(K),
-        mp_gids=snap.mp_gids.copy(),
-        mp_pos=pos_new,
-        stats=stats,
-        outliers=outliers,
-    )
+    return CorrectionMsg.of(snap, T_new, np.ones(K), pos_new, stats, outliers)
 
 
 @dataclass
@@ -339,10 +329,10 @@ class GlobalParams:
 
 
 def optimize_map(
-    snap: MapSnapshot,
+    snap: OptimizeRequest,
     params: GlobalParams | None = None,
     between_stages: Callable[[], None] | None = None,
-) -> Correction:
+) -> CorrectionMsg:
     """CCM-SLAM §4.9: Sim(3) pose-graph optimization on the essential graph, then
     global BA from its result. The returned correction holds BA's poses and points and
     PGO's per-keyframe scales (what keyframes that arrive meanwhile need).
@@ -351,7 +341,7 @@ def optimize_map(
     p = params or GlobalParams()
     check = between_stages or (lambda: None)
     stats: dict = {}
-    corr: Correction | None = None
+    corr: CorrectionMsg | None = None
     if p.run_pgo:
         corr = optimize_pose_graph(snap, p.pgo)
         stats.update(corr.stats)
@@ -366,7 +356,6 @@ def optimize_map(
         check()
     if corr is None:
         K = snap.n_kf
-        corr = Correction(snap.map_id, snap.version, snap.kf_gids.copy(), snap.T_m_kf.copy(),
-                          np.ones(K), snap.mp_gids.copy(), snap.mp_pos.copy())  # fmt: skip
+        corr = CorrectionMsg.of(snap, snap.T_m_kf.copy(), np.ones(K), snap.mp_pos.copy())
     corr.stats = stats
     return corr

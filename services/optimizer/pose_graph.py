@@ -24,7 +24,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from services.optimizer.snapshot import Correction, MapSnapshot
+from shared.messages import CorrectionMsg, OptimizeRequest
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ def correct_points(
     return out
 
 
-def point_ref_index(snap: MapSnapshot) -> np.ndarray:
+def point_ref_index(snap: OptimizeRequest) -> np.ndarray:
     """Index of each point's reference keyframe in ``snap.kf_gids``; a point whose
     reference is not in the snapshot falls back to its first observing keyframe, one
     with neither gets -1 (it is left where it is)."""
@@ -126,7 +126,9 @@ def point_ref_index(snap: MapSnapshot) -> np.ndarray:
     return ref
 
 
-def _components_with_gauge(snap: MapSnapshot, pairs: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+def _components_with_gauge(
+    snap: OptimizeRequest, pairs: np.ndarray, fixed: np.ndarray
+) -> np.ndarray:
     """Mask of keyframes connected (through ``pairs``) to a gauge keyframe."""
     K = snap.n_kf
     if len(pairs):
@@ -137,7 +139,7 @@ def _components_with_gauge(snap: MapSnapshot, pairs: np.ndarray, fixed: np.ndarr
     return np.isin(lab, lab[fixed])
 
 
-def optimize_pose_graph(snap: MapSnapshot, params: PGOParams | None = None) -> Correction:
+def optimize_pose_graph(snap: OptimizeRequest, params: PGOParams | None = None) -> CorrectionMsg:
     """Sim(3) pose-graph optimization of ``snap``; returns corrected poses, per-keyframe
     scales and points moved with their reference keyframes."""
     p = params or PGOParams()
@@ -202,14 +204,11 @@ def optimize_pose_graph(snap: MapSnapshot, params: PGOParams | None = None) -> C
     dt = time.perf_counter() - t0
     log.info("pose graph %s: %d kfs, %d edges, %d loops, error %.4g -> %.4g in %d it, %.3f s",
              snap.map_id, K, len(edges), len(loops), e0, e1, opt.iterations(), dt)  # fmt: skip
-    return Correction(
-        map_id=snap.map_id,
-        base_version=snap.version,
-        kf_gids=snap.kf_gids.copy(),
-        T_m_kf=T_new,
-        kf_scale=scale,
-        mp_gids=snap.mp_gids.copy(),
-        mp_pos=mp_pos,
+    return CorrectionMsg.of(
+        snap,
+        T_new,
+        scale,
+        mp_pos,
         stats={
             "pgo_iterations": int(opt.iterations()),
             "pgo_error_initial": float(e0),
@@ -221,8 +220,8 @@ def optimize_pose_graph(snap: MapSnapshot, params: PGOParams | None = None) -> C
     )
 
 
-def apply_to_snapshot(snap: MapSnapshot, corr: Correction) -> MapSnapshot:
-    """The snapshot with the correction's poses and points (same gids, same order)."""
+def apply_to_snapshot(snap: OptimizeRequest, corr: CorrectionMsg) -> OptimizeRequest:
+    """The map copy with the correction's poses and points (same gids, same order)."""
     if not (np.array_equal(snap.kf_gids, corr.kf_gids)
             and np.array_equal(snap.mp_gids, corr.mp_gids)):  # fmt: skip
         raise ValueError("correction does not match the snapshot's keyframes and points")

@@ -17,8 +17,6 @@ import logging
 import threading
 import time
 
-import numpy as np
-
 from shared import keys
 from shared.messages import CorrectionMsg, DecodeError, OptimizeRequest
 from shared.metrics import PROCESSING, REJECTED, UP
@@ -27,7 +25,6 @@ from shared.transport import Bus, open_session
 
 from .global_ba import BAParams, GlobalParams, optimize_map
 from .metrics import OPTIMIZATIONS, SUPERSEDED
-from .snapshot import Correction, MapSnapshot
 
 log = logging.getLogger(__name__)
 SERVICE = "optimizer"
@@ -35,26 +32,6 @@ SERVICE = "optimizer"
 
 class Superseded(Exception):
     """A newer copy of the map arrived; this run's result would be stale."""
-
-
-def snapshot_of(req: OptimizeRequest) -> MapSnapshot:
-    return MapSnapshot(
-        map_id=req.map_id, version=req.version, kf_gids=req.kf_gids, T_m_kf=req.T_m_kf,
-        fixed_gids=req.fixed_gids, edges=req.edges, loops=req.loops, S_loop=req.S_loop,
-        mp_gids=req.mp_gids, mp_pos=req.mp_pos, mp_ref=req.mp_ref, obs_kf=req.obs_kf,
-        obs_mp=req.obs_mp, obs_xy=req.obs_xy, obs_octave=req.obs_octave, fx=req.fx,
-    )  # fmt: skip
-
-
-def correction_msg(corr: Correction, sent_ns: int) -> CorrectionMsg:
-    out = np.asarray(corr.outliers, np.int64).reshape(-1, 2)
-    stats = {k: (float(v) if isinstance(v, (int, float, np.floating, np.integer)) else str(v))
-             for k, v in corr.stats.items()}  # fmt: skip
-    return CorrectionMsg(
-        corr.map_id, int(corr.base_version), sent_ns, corr.kf_gids.astype(np.int64),
-        corr.T_m_kf, corr.kf_scale.astype(np.float64), corr.mp_gids.astype(np.int64),
-        corr.mp_pos, out[:, 0].copy(), out[:, 1].copy(), stats,
-    )  # fmt: skip
 
 
 class OptimizerService:
@@ -66,7 +43,7 @@ class OptimizerService:
         self.session = None
         self.bus: Bus | None = None
         self._thread = threading.Thread(target=self._run, name="optimizer", daemon=True)
-        self.done: list[Correction] = []  # results, newest last (tests read them)
+        self.done: list[CorrectionMsg] = []  # results, newest last (tests read them)
         self._restarts: dict[str, int] = {}
 
     # --- transport-free core -------------------------------------------------------------
@@ -75,7 +52,7 @@ class OptimizerService:
             req = OptimizeRequest.decode(payload)
             if keys.map_of(key) not in (None, req.map_id):
                 raise DecodeError(f"map {req.map_id!r} sent on the key of {keys.map_of(key)!r}")
-            errs = snapshot_of(req).check()
+            errs = req.check()
             if errs:
                 raise DecodeError("inconsistent map copy: " + "; ".join(errs[:3]))
         except (DecodeError, ValueError) as e:
@@ -95,12 +72,11 @@ class OptimizerService:
         with self._cv:
             return map_id in self._pending
 
-    def optimize(self, req: OptimizeRequest) -> Correction:
+    def optimize(self, req: OptimizeRequest) -> CorrectionMsg:
         """PGO then BA on one map copy; raises Superseded at a stage boundary when a
         newer copy of the same map is waiting."""
         o = self.settings.optimizer
         t0 = time.perf_counter()
-        snap = snapshot_of(req)
 
         def between_stages() -> None:
             if self._newer(req.map_id):
@@ -108,10 +84,10 @@ class OptimizerService:
 
         params = GlobalParams(
             ba=BAParams(max_iters=o.ba_max_iterations, time_budget_s=o.ba_time_budget_s),
-            run_pgo=len(snap.loops) > 0,  # nothing to distribute without a loop edge
+            run_pgo=len(req.loops) > 0,  # nothing to distribute without a loop edge
             run_ba=o.ba and o.ba_max_iterations > 0,
         )
-        corr = optimize_map(snap, params, between_stages)
+        corr = optimize_map(req, params, between_stages)
         corr.stats["seconds"] = time.perf_counter() - t0
         corr.stats["reason"] = req.reason
         return corr
@@ -142,9 +118,8 @@ class OptimizerService:
             OPTIMIZATIONS.labels(req.reason).inc()
             self.done.append(corr)
             if self.bus is not None:
-                self.bus.put(
-                    keys.map_correction(map_id), correction_msg(corr, time.time_ns()).encode()
-                )
+                corr.sent_ns = time.time_ns()
+                self.bus.put(keys.map_correction(map_id), corr.encode())
             log.info("optimized %s: %d keyframes, %d points in %.2f s", map_id,
                      len(corr.kf_gids), len(corr.mp_gids), corr.stats["seconds"])  # fmt: skip
 
