@@ -27,6 +27,8 @@ from shared.settings import DEFAULT_ROUTER, Settings
 
 log = logging.getLogger(__name__)
 
+DEFAULT_DATA_DIR = "hivemap-data"  # relative to where `hivemap up` runs
+
 
 @dataclass
 class ServiceSpec:
@@ -112,12 +114,58 @@ class PortInUse(RuntimeError):
     pass
 
 
+# A dead service comes back after RESTART_MIN_S, twice as long after each death that
+# follows a short life, at most RESTART_MAX_S later; a service that ran STABLE_S
+# starts over at RESTART_MIN_S. A service that cannot start (bad config) so costs a
+# restart every half minute, not a busy loop, and one killed by accident is back at once.
+RESTART_MIN_S = 0.5
+RESTART_MAX_S = 30.0
+STABLE_S = 60.0
+
+
+def restart_delay(previous: float, ran_s: float) -> float:
+    if previous <= 0 or ran_s >= STABLE_S:
+        return RESTART_MIN_S
+    return min(previous * 2, RESTART_MAX_S)
+
+
+def describe_exit(returncode: int) -> str:
+    if returncode < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-returncode).name}"
+        return f"killed by signal {-returncode}"
+    return f"exit code {returncode}"
+
+
+@dataclass
+class Child:
+    """One process of the stack. ``supervised`` ones (the plan's services) are restarted
+    when they die; added ones (agents) are not: they finish."""
+
+    name: str
+    argv: list[str]
+    env: dict[str, str]
+    proc: subprocess.Popen
+    supervised: bool
+    started: float = field(default_factory=time.monotonic)
+    restarts: int = 0
+    delay: float = 0.0
+    restart_at: float | None = None  # set while dead and waiting for its restart
+    preexec: object = None
+
+
+class DataDirBusy(RuntimeError):
+    pass
+
+
 class Stack:
-    """Starts the plan's processes and stops them all, in reverse order.
+    """Starts the plan's processes, restarts one that dies (``supervise``), and stops
+    them all, in reverse order.
 
     ``listen`` is the router's endpoint; None picks a free port (tests and benches run
     several stacks side by side), ``hivemap up`` passes tcp/127.0.0.1:7447, where
-    agents look by default."""
+    agents look by default. ``data_dir`` keeps Redis's append-only file there, so the
+    maps outlive the stack; None keeps nothing."""
 
     def __init__(
         self,
@@ -131,7 +179,14 @@ class Stack:
         self.env = dict(env or {})  # extra HIVEMAP_* variables for every service
         self.listen = listen
         self.redis: RedisServer | None = None
-        self.procs: list[tuple[str, subprocess.Popen]] = []
+        self.children: list[Child] = []
+        self._lock_file = None
+        self._redis_delay = 0.0
+        self._redis_started = 0.0
+
+    @property
+    def procs(self) -> list[tuple[str, subprocess.Popen]]:
+        return [(c.name, c.proc) for c in self.children]
 
     def start(self, with_api: bool = True) -> None:
         s = self.settings
@@ -146,8 +201,11 @@ class Stack:
         if with_api:
             check_free(s.api_host, s.api_port, "API address",
                        "set HIVEMAP_API_PORT to use another port")  # fmt: skip
+        if self.data_dir is not None:
+            self._lock_data_dir()
         self.redis = RedisServer(data_dir=self.data_dir, persist=self.data_dir is not None)
         redis_url = self.redis.start()
+        self._redis_started = time.monotonic()
         self.settings = s.model_copy(
             update={"redis_url": redis_url,
                     "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]})}
@@ -157,12 +215,33 @@ class Stack:
                 continue
             argv = _hivemap_exe() + spec.argv[1:]
             env = {**os.environ, **self.env, **spec.env}
-            proc = subprocess.Popen(argv, env=env, start_new_session=True)
-            self.procs.append((spec.name, proc))
+            self._spawn(spec.name, argv, env, supervised=True)
             if spec.name == "router":
                 _wait_port(host, port, 15.0)
         if with_api:
             _wait_port(self.settings.api_host, self.settings.api_port, 30.0)
+
+    def _lock_data_dir(self) -> None:
+        """Two stacks appending to one Redis file would corrupt it."""
+        import fcntl
+
+        d = Path(self.data_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        f = open(d / "hivemap.lock", "a+")  # noqa: SIM115 -- held for the stack's life
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            raise DataDirBusy(f"data directory {d} is in use by another `hivemap up`; "
+                              "stop it or pass another --data-dir") from None  # fmt: skip
+        self._lock_file = f
+
+    def _spawn(self, name: str, argv: list[str], env: dict[str, str], supervised: bool,
+               preexec=None) -> Child:  # fmt: skip
+        proc = subprocess.Popen(argv, env=env, start_new_session=True, preexec_fn=preexec)
+        c = Child(name, argv, env, proc, supervised, preexec=preexec)
+        self.children.append(c)
+        return c
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -182,12 +261,56 @@ class Stack:
             **(env or {}),
         }
         pre = (lambda: set_priority(nice)) if nice > 0 else None
-        proc = subprocess.Popen(_hivemap_exe() + argv, env=e, start_new_session=True,
-                                preexec_fn=pre)  # fmt: skip
-        self.procs.append((name, proc))
+        self._spawn(name, _hivemap_exe() + argv, e, supervised=False, preexec=pre)
 
     def failed(self) -> list[str]:
         return [n for n, p in self.procs if p.poll() is not None and p.returncode != 0]
+
+    def supervise(self, now: float | None = None) -> None:
+        """One round: note each supervised process that died and restart it when its
+        backoff is over. The others go on meanwhile: agents buffer and resend what the
+        dead one did not acknowledge, and the mapper reloads its maps from Redis."""
+        now = time.monotonic() if now is None else now
+        self._supervise_redis(now)
+        for c in self.children:
+            if not c.supervised or c.proc.poll() is None:
+                continue
+            if c.restart_at is None:
+                ran = now - c.started
+                c.delay = restart_delay(c.delay, ran)
+                c.restart_at = now + c.delay
+                log.warning("%s (pid %d) %s after %.0f s; restarting it in %.1f s",
+                            c.name, c.proc.pid, describe_exit(c.proc.returncode), ran,
+                            c.delay)  # fmt: skip
+            elif now >= c.restart_at:
+                c.proc = subprocess.Popen(c.argv, env=c.env, start_new_session=True,
+                                          preexec_fn=c.preexec)  # fmt: skip
+                c.started, c.restart_at = now, None
+                c.restarts += 1
+                log.warning("%s restarted (pid %d, restart %d)", c.name, c.proc.pid,
+                            c.restarts)  # fmt: skip
+
+    def _supervise_redis(self, now: float) -> None:
+        r = self.redis
+        if r is None or r.proc is None or r.proc.poll() is None:
+            return
+        ran = now - self._redis_started
+        self._redis_delay = restart_delay(self._redis_delay, ran)
+        log.warning(
+            "redis-server %s after %.0f s; restarting it on port %d in %.1f s",
+            describe_exit(r.proc.returncode),
+            ran,
+            r.port,
+            self._redis_delay,
+        )
+        time.sleep(self._redis_delay)  # everything else waits on Redis anyway
+        try:
+            r.start()
+        except (RuntimeError, TimeoutError) as e:
+            log.error("redis-server did not come back: %s", e)
+            return
+        self._redis_started = time.monotonic()
+        log.warning("redis-server restarted (pid %d)", r.proc.pid)
 
     def stop(self, timeout: float = 10.0) -> None:
         for _, p in reversed(self.procs):
@@ -202,10 +325,13 @@ class Stack:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
-        self.procs.clear()
+        self.children.clear()
         if self.redis:
             self.redis.stop()
             self.redis = None
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
 
 
 def _wait_port(host: str, port: int, timeout: float) -> None:
@@ -236,12 +362,17 @@ def _stop_on_signal() -> threading.Event:
 
 
 def _run_until_signal(stack: Stack, stop: threading.Event) -> int:
+    """Keep the stack up until Ctrl-C or SIGTERM: a service that dies is restarted, not
+    the stack stopped (one crashed service must not take a mission's map down)."""
+    reported: set[int] = set()
     try:
         while not stop.wait(0.5):
-            bad = stack.failed()
-            if bad:
-                print(f"hivemap: {', '.join(bad)} exited with an error; stopping", file=sys.stderr)
-                return 1
+            stack.supervise()
+            for c in stack.children:
+                if not c.supervised and c.proc.poll() is not None and c.proc.pid not in reported:
+                    reported.add(c.proc.pid)
+                    if c.proc.returncode != 0:
+                        log.warning("%s %s", c.name, describe_exit(c.proc.returncode))
         return 0
     finally:
         stack.stop()
@@ -261,7 +392,7 @@ def _print_urls(stack: Stack) -> None:
 def _start_or_explain(stack: Stack) -> bool:
     try:
         stack.start()
-    except (PortInUse, ValueError) as e:
+    except (PortInUse, DataDirBusy, ValueError) as e:
         stack.stop()
         print(f"hivemap: {e}", file=sys.stderr)
         return False
@@ -273,10 +404,12 @@ def _start_or_explain(stack: Stack) -> bool:
 
 def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
     stop = _stop_on_signal()
-    stack = Stack(settings, data_dir=args.data_dir, listen=args.listen)
+    data_dir = None if args.ephemeral else str(Path(args.data_dir).resolve())
+    stack = Stack(settings, data_dir=data_dir, listen=args.listen)
     if not _start_or_explain(stack):
         return 2
     _print_urls(stack)
+    print(f"data         : {data_dir or 'none kept (--ephemeral)'}", flush=True)
     return _run_until_signal(stack, stop)
 
 
@@ -316,7 +449,11 @@ def cmd_router(args: argparse.Namespace, settings: Settings) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="start router, redis and every service on this machine")
-    p.add_argument("--data-dir", default=None, help="keep Redis data here (append-only file)")
+    p.add_argument("--data-dir", default=DEFAULT_DATA_DIR,
+                   help="maps and trajectories persist here (Redis append-only file); "
+                   "the next `hivemap up` with the same directory serves them again "
+                   f"(default ./{DEFAULT_DATA_DIR})")  # fmt: skip
+    p.add_argument("--ephemeral", action="store_true", help="keep no data (overrides --data-dir)")
     _add_listen(p)
     p.set_defaults(func=cmd_up)
 

@@ -74,10 +74,10 @@ def _listen() -> list[str]:
     return ["--listen", f"tcp/127.0.0.1:{free_port()}"]
 
 
-def test_up_serves_and_sigterm_leaves_no_orphans():
+def test_up_serves_and_sigterm_leaves_no_orphans(tmp_path):
     port = free_port()
     proc = subprocess.Popen([HIVEMAP, "up", *_listen()], env=_env(port), stdout=subprocess.PIPE,
-                            text=True)  # fmt: skip
+                            text=True, cwd=tmp_path)  # fmt: skip
     try:
         deadline = time.monotonic() + 60
         health = None
@@ -95,14 +95,17 @@ def test_up_serves_and_sigterm_leaves_no_orphans():
         left = _stop(proc)
     assert proc.returncode == 0
     assert not left, f"orphans after SIGTERM: {left}"
+    # Persistent by default, under the directory it ran in.
+    assert (tmp_path / "hivemap-data" / "appendonlydir").is_dir()
 
 
 def test_sigterm_while_starting_still_stops_everything():
     """A signal before the stack is fully up must not kill the launcher outright and
     orphan the children it already started."""
     proc = subprocess.Popen(
-        [HIVEMAP, "up", *_listen()], env=_env(free_port()), stdout=subprocess.PIPE, text=True
-    )
+        [HIVEMAP, "up", "--ephemeral", *_listen()], env=_env(free_port()),
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
     seen: set[int] = set()
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and not seen:  # first child = redis, the stack is starting
@@ -183,7 +186,7 @@ def test_agent_without_server_flag_joins_hivemap_up(tmp_path):
     env = _env(api)
     for k in [k for k in env if k.startswith("HIVEMAP_ZENOH__")]:
         del env[k]
-    up_argv = [HIVEMAP, "up"]
+    up_argv = [HIVEMAP, "up", "--ephemeral"]
     if not _port_free(7447):
         ep = f"tcp/127.0.0.1:{free_port()}"
         up_argv += ["--listen", ep]
@@ -227,7 +230,8 @@ def test_up_refuses_a_taken_router_port():
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        r = subprocess.run([HIVEMAP, "up", "--listen", f"tcp/127.0.0.1:{port}"],
-                           env=_env(free_port()), capture_output=True, text=True, timeout=60)  # fmt: skip
+        argv = [HIVEMAP, "up", "--ephemeral", "--listen", f"tcp/127.0.0.1:{port}"]
+        r = subprocess.run(argv, env=_env(free_port()), capture_output=True, text=True,
+                           timeout=60)  # fmt: skip
     assert r.returncode == 2
     assert f"127.0.0.1:{port} is not free" in r.stderr and "--listen" in r.stderr
