@@ -46,6 +46,17 @@ def open_session(zs: ZenohSettings) -> zenoh.Session:
     return zenoh.open(zenoh_config(zs))
 
 
+def router_count(session: zenoh.Session | None) -> int:
+    """Routers a client session reaches now: 0 before it opened and while its router is
+    gone (the session stays open and reconnects by itself when the router is back)."""
+    if session is None:
+        return 0
+    try:
+        return len(list(session.info.routers_zid()))
+    except Exception:  # a session closed under us (shutdown): no router either
+        return 0
+
+
 @dataclass
 class Received:
     key: str

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
@@ -35,7 +36,8 @@ def test_agent_without_server_tracks_and_bounds_its_map():
     assert len(agent.vo.kfs) <= 15 and stats.kf_trimmed > 0
 
 
-def test_late_server_receives_everything_the_buffer_held(redis_url):
+def test_late_server_receives_everything_the_buffer_held(redis_url, caplog):
+    caplog.set_level(logging.INFO, logger="services.agent.progress")
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     s = Settings(redis_url=redis_url, zenoh=ZenohSettings(mode="client", connect=[ep]))
@@ -47,6 +49,7 @@ def test_late_server_receives_everything_the_buffer_held(redis_url):
     agent = Agent(s, "late", src, n_local=5, n_buffer=5)
     out = {}
     t = threading.Thread(target=lambda: out.setdefault("stats", agent.run()))
+    t_start = time.time()
     t.start()
     router = mapper = None
     try:
@@ -57,6 +60,7 @@ def test_late_server_receives_everything_the_buffer_held(redis_url):
         # Trimming already dropped keyframes the server will never see.
         lost_before = agent.comm.stats.kf_dropped_unacked
         assert lost_before > 0
+        t_router = time.time()
         router = zenoh.open(zenoh_config(ZenohSettings(mode="router", connect=[], listen=[ep])))
         mapper = MapperService(s)
         mapper.start()
@@ -68,6 +72,16 @@ def test_late_server_receives_everything_the_buffer_held(redis_url):
         if router:
             router.close()
     stats = out["stats"]
+    # The user was told within 5 s that no router answered, and again while that lasted;
+    # then that the router answered.
+    msgs = [(r.created, r.levelno, r.getMessage()) for r in caplog.records
+            if r.name == "services.agent.progress"]  # fmt: skip
+    warned = [t for t, lvl, m in msgs if lvl == logging.WARNING and "no router answers" in m]
+    assert warned and warned[0] - t_start <= 5.0, (warned[:1], t_start)
+    assert len([t for t in warned if t < t_router]) >= max(1, int((t_router - t_start - 3) // 5))
+    assert not [t for t in warned if t > t_router + 5], "warned after the router came"
+    assert any("answers; sending" in m for t, _, m in msgs if t >= t_router)
+    assert any("tracking ok" in m and "server map" in m for _, _, m in msgs)
     created = set(range(agent.vo.next_kf))
     forgotten = agent.comm.forgotten  # dropped by the buffer rule before any ack
     stored = set(Store(connect(redis_url)).keyframe_ids("late"))
@@ -133,3 +147,38 @@ def test_server_correction_moves_the_reported_pose_not_the_vo():
     alone.run()
     np.testing.assert_array_equal(np.stack([T for _, T in alone.vo_poses]),
                                   np.stack([T for _, T in agent.vo_poses]))  # fmt: skip
+
+
+def test_progress_reporter_warns_while_no_router_answers_and_says_when_one_does():
+    from services.agent.progress import ProgressReporter, Snapshot
+
+    state = {"routers": 0, "acked": 0, "frames": 0}
+
+    def snap() -> Snapshot:
+        return Snapshot(state["frames"], 300, "ok", 12, 12, state["acked"], 12 - state["acked"],
+                        "map-A" if state["acked"] else None, state["routers"])  # fmt: skip
+
+    rep = ProgressReporter("A", "tcp/127.0.0.1:7447", snap, every_s=5, warn_after_s=3,
+                           no_ack_warn_s=10)  # fmt: skip
+    said: list[tuple[float, int, str]] = []
+    for i in range(0, 400):  # 40 s at 0.1 s ticks
+        t = i * 0.1
+        state["frames"] = i
+        state["routers"] = 1 if t >= 17 else 0
+        state["acked"] = 5 if t >= 19 else 0
+        said += [(t, lvl, m) for lvl, m in rep.check(t)]
+    warn = [t for t, lvl, m in said if lvl == logging.WARNING and "no router" in m]
+    assert warn[0] == pytest.approx(3.0) and all(t < 17 for t in warn)
+    assert len(warn) == 3  # 3, 8, 13 s: repeated while it lasts
+    assert [t for t, _, m in said if "answers; sending 12 buffered" in m] == [pytest.approx(17)]
+    lines = [m for _, lvl, m in said if lvl == logging.INFO and "frame" in m]
+    assert len(lines) == 8 and "frame 50/300 (17 %), 10.0 fps, tracking ok" in lines[0]
+    assert "server map map-A" in lines[-1] and "5 acked" in lines[-1]
+    # Keyframes acked at 19 s, 7 still waiting and nothing acked since: after 10 s quiet
+    # the user hears that no mapper seems to be behind the router.
+    quiet = [t for t, lvl, m in said if lvl == logging.WARNING and "no keyframe" in m]
+    assert quiet and quiet[0] == pytest.approx(29.0)
+    # Flying without a server: progress only.
+    solo = ProgressReporter("B", None, snap, every_s=5)
+    state.update(routers=0, acked=0)
+    assert all(lvl == logging.INFO for i in range(100) for lvl, _ in solo.check(i * 0.1))

@@ -42,6 +42,7 @@ from shared.trajectory import Trajectory, format_tum
 
 from .comm import CommModule
 from .local_map_trim import KfInfo, trim
+from .progress import ProgressReporter, Snapshot
 from .sources import ImageSource
 from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
 
@@ -103,6 +104,8 @@ class Agent:
         self._ack_q: queue.Queue = queue.Queue()
         self._sent_kfs: set[int] = set()
         self._stop = threading.Event()
+        ep = settings.zenoh.connect[0] if use_server and settings.zenoh.connect else None
+        self._reporter = ProgressReporter(agent_id, ep, self._progress)
 
     # --- network (background) -----------------------------------------------------------
     def _connect(self) -> None:
@@ -128,6 +131,7 @@ class Agent:
     def run(self) -> AgentStats:
         if self.use_server:
             threading.Thread(target=self._connect, name="agent-connect", daemon=True).start()
+        self._reporter.start()
         t_start = time.monotonic()
         stamp0 = None
         lost_since = None
@@ -163,7 +167,18 @@ class Agent:
         while self._flushing() and time.monotonic() < deadline:
             self._service(0.05)
         self.stats.kf_lost_unacked = self.comm.stats.kf_dropped_unacked
+        self._reporter.stop()
         return self.stats
+
+    def _progress(self) -> Snapshot:
+        """Counters only (read from the reporter's thread: no iteration over live maps)."""
+        from shared.transport import router_count
+
+        c, maps = self.comm, self.stats.server_maps
+        total = len(self.source) if hasattr(self.source, "__len__") else None
+        return Snapshot(self.stats.frames, total, self.vo.state, self.stats.keyframes,
+                        len(c.acked_kfs) + len(c.first_sent_at), len(c.acked_kfs), len(c.kfs),
+                        maps[-1] if maps else None, router_count(self._session))  # fmt: skip
 
     def _flushing(self) -> bool:
         """After the last frame: keep going while a server may still take our data."""
@@ -171,6 +186,7 @@ class Agent:
 
     def close(self) -> None:
         self._stop.set()
+        self._reporter.stop()
         if self.bus is not None:
             self.bus.close()
         if self._session is not None:
