@@ -43,6 +43,7 @@ from shared.trajectory import Trajectory, format_tum
 from .comm import CommModule
 from .local_map_trim import KfInfo, trim
 from .progress import ProgressReporter, Snapshot
+from .reported import ReportedPose
 from .sources import ImageSource
 from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
 
@@ -62,6 +63,7 @@ class AgentStats:
     foreign_points: int = 0  # server points taken into the local map
     chunks: int = 0  # server map chunks received for a keyframe still held
     corrections: int = 0  # frame corrections taken from the server
+    corrections_held: int = 0  # ... and held back by the gate (they contradicted the VO)
     server_maps: list[str] = field(default_factory=list)  # the server maps it was in, in order
 
     def summary(self) -> dict:
@@ -75,7 +77,7 @@ class AgentStats:
             "map_ms_per_kf_p95": float(np.percentile(m, 95)),
             "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
             "foreign_points": self.foreign_points, "chunks": self.chunks,
-            "corrections": self.corrections,
+            "corrections": self.corrections, "corrections_held": self.corrections_held,
             "server_maps": self.server_maps,
         }  # fmt: skip
 
@@ -98,6 +100,7 @@ class Agent:
         self.poses: list[tuple[int, np.ndarray]] = []  # online: VO pose through S_g_l
         self.vo_poses: list[tuple[int, np.ndarray]] = []  # the VO's own
         self.S_g_l = Sim3.identity()  # VO frame -> frame corrected by the server's map
+        self.reported = ReportedPose()  # gates S_g_l and keeps the reported pose smooth
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self.bus = None
         self._session = None
@@ -148,7 +151,9 @@ class Agent:
             self.stats.track_ms.append(r.track_s * 1e3)
             if r.T_w_c is not None:
                 self.vo_poses.append((fr.stamp_ns, r.T_w_c))
-                self.poses.append((fr.stamp_ns, self.S_g_l.transform_pose(r.T_w_c)))
+                was_lost = lost_since is not None
+                self.poses.append((fr.stamp_ns, self.reported.update(r.T_w_c, r.state, r.T_pred,
+                                                                     was_lost)))  # fmt: skip
             if r.state == "lost":
                 self.stats.lost_frames += 1
                 lost_since = fr.stamp_ns if lost_since is None else lost_since
@@ -240,8 +245,12 @@ class Agent:
             log.warning("bad map chunk: %s", e)
             return
         if c.S_g_l is not None:
-            self.S_g_l = Sim3.from_matrix(c.S_g_l)
-            self.stats.corrections += 1
+            S = Sim3.from_matrix(c.S_g_l)
+            if self.reported.offer(S):
+                self.S_g_l = S
+                self.stats.corrections += 1
+            else:
+                self.stats.corrections_held += 1
         ref = self.vo.kfs.get(c.kf_ref)
         if ref is None:
             return
@@ -383,7 +392,8 @@ class Agent:
             "ack_latency_median_ms": None if lat is None else float(np.median(lat) * 1e3),
             "ack_latency_p95_ms": None if lat is None else float(np.percentile(lat, 95) * 1e3),
         }  # fmt: skip
-        doc = {**self.stats.summary(), "comm": comm}
+        vo = {"relocalized": self.vo.relocalized, "rejected_jumps": self.vo.rejected_jumps}
+        doc = {**self.stats.summary(), "comm": comm, "vo": vo}
         (out / f"{self.agent}_stats.json").write_text(json.dumps(doc, indent=2))
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.camera import PinholeRadTan
-from shared.geometry import se3_inv
+from shared.geometry import exp_so3, log_so3, se3_inv
 from shared.orb import Extractor, Features, hamming
 
 from .features import match_by_projection, match_descriptors
@@ -32,12 +32,22 @@ class VOParams:
     window: int = 7  # keyframes in local BA
     local_kfs: int = 10  # keyframes whose points are searched while tracking
     foreign_gate_px: float = 1.5  # server points must reproject this well (see _gate_foreign)
-    search_radius: float = 12.0
+    search_radius: float = 12.0  # px at the nominal frame interval
     min_inliers: int = 40
-    kf_min_frames: int = 4
+    kf_min_frames: int = 4  # at the nominal frame interval (a time: 0.2 s at 20 Hz)
     kf_max_frames: int = 12
     kf_inlier_ratio: float = 0.7
     ba: bool = True
+    nominal_dt_s: float = 0.05  # the frame interval the frame counts above are for
+    # A pose the motion model cannot explain is not taken from a weakly supported PnP:
+    # how far from the prediction it may be (share of the scene depth, plus this many
+    # times the frame's own predicted motion), growing with every frame lost.
+    jump_depth_share: float = 0.15
+    jump_motion_factor: float = 1.5
+    jump_rot_deg: float = 12.0
+    strong_inliers: int = 150  # a PnP this well supported is taken wherever it lands
+    coast_s: float = 0.5  # lost: how long the motion model keeps the last velocity
+    reloc_kfs: int = 6  # keyframes tried per lost frame, nearest the last pose first
 
 
 @dataclass
@@ -70,6 +80,8 @@ class FrameResult:
     new_points: list[int] = field(default_factory=list)
     track_s: float = 0.0
     map_s: float = 0.0
+    T_pred: np.ndarray | None = None  # the motion model's pose for this frame
+    how: str = ""  # which path found the pose (diagnostics: predict, wide, reloc, ...)
 
 
 class VisualOdometry:
@@ -89,6 +101,11 @@ class VisualOdometry:
         self.init_age = 0
         self.T_last: np.ndarray | None = None
         self.velocity = np.eye(4)
+        self.last_stamp: int | None = None
+        self.dt_ratio = 1.0  # this frame's interval / the nominal one
+        self.depth = 1.0  # median depth of the points tracked last (VO units)
+        self.rejected_jumps = 0  # PnP poses refused as implausible
+        self.relocalized = 0
         self.frames_since_kf = 0
         self.kf_inliers = 0
         self.lost_frames = 0
@@ -98,6 +115,10 @@ class VisualOdometry:
     # --- public -----------------------------------------------------------------------------
     def track(self, img: np.ndarray, stamp_ns: int) -> FrameResult:
         t0 = time.perf_counter()
+        if self.last_stamp is not None and stamp_ns > self.last_stamp:
+            dt = (stamp_ns - self.last_stamp) * 1e-9
+            self.dt_ratio = float(np.clip(dt / self.p.nominal_dt_s, 0.5, 6.0))
+        self.last_stamp = stamp_ns
         f = self.extract(img)
         step = self._initialize if self.state == "init" else self._track
         res = step(f, stamp_ns)
@@ -197,14 +218,47 @@ class VisualOdometry:
         return sel[pi], kp, ok
 
     def _predict(self, f: Features, T_pred: np.ndarray, P: np.ndarray, D: np.ndarray):
-        """First pose from the motion model: projection search, widened once."""
-        for radius in (self.p.search_radius, 3 * self.p.search_radius):
-            pi, kp, _ = self._search(f, T_pred, P, D, radius)
-            if len(pi) >= self.p.min_inliers:
-                r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T_pred)
-                if r.ok and r.inliers.sum() >= self.p.min_inliers:
-                    return r, pi, kp
+        """First pose from the motion model: projection search, widened once.
+
+        The window grows with the frame interval (a 10 Hz camera moves twice as far
+        between frames). In the wide window the guess is too far off for the guided
+        solver, whose first outlier cut (16 px) is narrower than the window: there
+        RANSAC decides, and the result must then agree with the motion model."""
+        r0 = self.p.search_radius * max(1.0, self.dt_ratio)
+        pi, kp, _ = self._search(f, T_pred, P, D, r0)
+        if len(pi) >= self.p.min_inliers:
+            r = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=T_pred)
+            if r.ok and r.inliers.sum() >= self.p.min_inliers:
+                return r, pi, kp
+        # Wide: around the prediction, then around the last pose (a sudden stop).
+        for T0, how in ((T_pred, "wide"), (self.T_last, "still")):
+            pi, kp, _ = self._search(f, T0, P, D, 3 * r0)
+            if len(pi) < self.p.min_inliers:
+                continue
+            r = solve_pnp(P[pi], f.xy[kp], self.cam.fx)
+            if r.ok and r.inliers.sum() >= self.p.min_inliers and self._plausible(r, T_pred):
+                r2 = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=r.T_w_c)
+                if r2.ok and r2.inliers.sum() >= r.inliers.sum() * 0.8:
+                    r = r2
+                r.how = how
+                return r, pi, kp
         return None, None, None
+
+    def _plausible(self, r, T_pred: np.ndarray) -> bool:
+        """Could the camera be there? A drone does not teleport: the pose must lie near
+        the motion model's prediction, the more loosely the longer tracking was lost,
+        unless so many points support it that it cannot be a wrong solution."""
+        if int(r.inliers.sum()) >= self.p.strong_inliers:
+            return True
+        grow = 1.0 + self.lost_frames
+        v = float(np.linalg.norm(self.velocity[:3, 3]))
+        dt = float(np.linalg.norm(r.T_w_c[:3, 3] - T_pred[:3, 3]))
+        bound = (self.p.jump_depth_share * self.depth + self.p.jump_motion_factor * v) * grow
+        ang = np.rad2deg(np.linalg.norm(log_so3(T_pred[:3, :3].T @ r.T_w_c[:3, :3])))
+        ok = dt <= bound and ang <= self.p.jump_rot_deg * grow
+        if not ok:
+            self.rejected_jumps += 1
+        return ok
 
     def _track(self, f: Features, stamp: int) -> FrameResult:
         # The agent's own points first. The server's sit in this frame through a fitted
@@ -225,14 +279,22 @@ class VisualOdometry:
             r2, pi2, kp2 = self._predict(f, T_pred, P2, D2)
             if r2 is not None and (res is None or r2.inliers.sum() > res.inliers.sum()):
                 res, pi, kp, pids, P, D = r2, pi2, kp2, ids, P2, D2
+        was_lost = self.state == "lost"
         if res is None:
-            res, pi, kp, P = self._relocalize(f, pids)
+            res, pi, kp, P = self._relocalize(f, pids, T_pred)
             if res is None:
                 self.lost_frames += 1
                 self.state = "lost"
-                # Keep predicting so the trajectory continues and the search can recover.
+                # Keep predicting so the reported pose continues: a drone keeps its
+                # velocity for a while (inertia), but a constant-velocity guess held
+                # for seconds flies off (it was reported, and searched around, metres
+                # from the camera), so past ``coast_s`` the velocity dies away.
+                if self.lost_frames * self.dt_ratio * self.p.nominal_dt_s > self.p.coast_s:
+                    self.velocity = _damp(self.velocity, 0.7)
                 self.T_last = T_pred
-                return FrameResult(stamp, T_pred.copy(), "lost")
+                return FrameResult(stamp, T_pred.copy(), "lost", T_pred=T_pred.copy(),
+                                   how="lost")  # fmt: skip
+            self.relocalized += 1
         # Second pass: with the refined pose, a tighter search finds more points.
         pi2, kp2, seen = self._search(f, res.T_w_c, P, D, 4.0)
         if len(pi2) >= self.p.min_inliers:
@@ -246,13 +308,18 @@ class VisualOdometry:
         for i in pids[pi[inl]].tolist():
             self.mps[i].found += 1
         self.state = "ok"
-        self.lost_frames = 0
         T = res.T_w_c
-        self.velocity = se3_inv(self.T_last) @ T
+        # After a loss the last pose is a prediction: no velocity from it.
+        self.velocity = np.eye(4) if was_lost else se3_inv(self.T_last) @ T
+        self.lost_frames = 0
         self.T_last = T
         self.frames_since_kf += 1
         n_in = int(inl.sum())
-        out = FrameResult(stamp, T.copy(), "ok", n_in)
+        Xc = (P[pi[inl]] - T[:3, 3]) @ T[:3, :3]
+        if len(Xc):
+            self.depth = float(np.median(Xc[:, 2]))
+        out = FrameResult(stamp, T.copy(), "ok", n_in, T_pred=T_pred.copy(),
+                          how=getattr(res, "how", "predict"))  # fmt: skip
         if self._need_kf(n_in):
             t = time.perf_counter()
             kf = self._new_kf(stamp, T, f)
@@ -303,13 +370,23 @@ class VisualOdometry:
         return r_own, pi[own[keep]], kp[own[keep]]
 
     def _need_kf(self, n_in: int) -> bool:
-        n = self.frames_since_kf
+        # Counted in nominal frames: at 10 Hz a frame is two of them, so the map keeps
+        # the same keyframes per second of flight.
+        n = self.frames_since_kf * self.dt_ratio
+        # Few points tracked: the camera is leaving the map (fast flight into new
+        # space), so a keyframe now, while there are still enough to place it.
+        if n_in < self.p.min_inliers * 3:
+            return True
         if n < self.p.kf_min_frames:
-            return n_in < self.p.min_inliers * 2
+            return False
         return n >= self.p.kf_max_frames or n_in < self.p.kf_inlier_ratio * self.kf_inliers
 
-    def _relocalize(self, f: Features, pids: np.ndarray):
-        for k in sorted(self.kfs, reverse=True)[:5]:
+    def _relocalize(self, f: Features, pids: np.ndarray, T_pred: np.ndarray):
+        """Brute-force matching against keyframes of the local map (nearest the last
+        pose first), PnP with RANSAC, then the motion-model check."""
+        c = self.T_last[:3, 3]
+        near = sorted(self.kfs, key=lambda k: (np.linalg.norm(self.kfs[k].T_w_c[:3, 3] - c), -k))
+        for k in near[: self.p.reloc_kfs]:
             kf = self.kfs[k]
             has = np.nonzero(kf.mp >= 0)[0]
             if len(has) < 30:
@@ -320,7 +397,8 @@ class VisualOdometry:
             mp_ids = kf.mp[has[a]]
             P = np.array([self.mps[i].pos for i in mp_ids.tolist()])
             r = solve_pnp(P, f.xy[b], self.cam.fx)
-            if r.ok and r.inliers.sum() >= self.p.min_inliers:
+            if r.ok and r.inliers.sum() >= self.p.min_inliers and self._plausible(r, T_pred):
+                r.how = "reloc"
                 idx = np.searchsorted(pids, mp_ids)
                 idx = np.clip(idx, 0, max(len(pids) - 1, 0))
                 Pall = np.array([self.mps[i].pos for i in pids.tolist()]).reshape(-1, 3)
@@ -330,7 +408,9 @@ class VisualOdometry:
                     else np.zeros(len(mp_ids), bool)
                 )
                 r2 = solve_pnp(P, f.xy[b], self.cam.fx, T_guess=r.T_w_c)
-                r = r2 if r2.ok else r
+                if r2.ok:
+                    r2.how = "reloc"
+                    r = r2
                 r.inliers = r.inliers & keep
                 return r, idx, b, Pall
         return None, None, None, None
@@ -433,6 +513,14 @@ class VisualOdometry:
                 j = mp.obs.pop(k)
                 if self.kfs[k].mp[j] == i:
                     self.kfs[k].mp[j] = -1
+
+
+def _damp(T: np.ndarray, a: float) -> np.ndarray:
+    """The motion ``T`` scaled down to the share ``a`` (rotation angle and translation)."""
+    out = np.eye(4)
+    out[:3, :3] = exp_so3(a * log_so3(T[:3, :3]))
+    out[:3, 3] = a * T[:3, 3]
+    return out
 
 
 def remove_keyframe(vo: VisualOdometry, kf_id: int) -> list[int]:
