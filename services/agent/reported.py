@@ -88,6 +88,7 @@ class ReportedPose:
             T_old = self.S.transform_pose(self._last_vo)
             T_new = S_new.transform_pose(self._last_vo)
             self._absorb(T_old, T_new)
+            self._last_T = T_new  # the camera did not move: no step to pay out against
         self.S = S_new
         self._path_since = 0.0
         self._pending = []
@@ -108,13 +109,15 @@ class ReportedPose:
         prediction for this frame; on the first frame tracked after being lost
         (``was_lost``) the VO's pose snaps from its prediction to the truth, and the
         reported pose follows the prediction instead, paying the difference out."""
-        if was_lost and state == "ok" and T_pred is not None:
-            self._absorb(self.S.transform_pose(T_pred), self.S.transform_pose(T_vo))
         T = self.S.transform_pose(T_vo)
+        moved = T  # what the camera's own motion this frame is measured to
+        if was_lost and state == "ok" and T_pred is not None:
+            moved = self.S.transform_pose(T_pred)
+            self._absorb(moved, T)
         step = 0.0
         if self._last_T is not None:
-            step = float(np.linalg.norm(T[:3, 3] - self._last_T[:3, 3]))
-            rot = float(np.linalg.norm(log_so3(T[:3, :3] @ self._last_T[:3, :3].T)))
+            step = float(np.linalg.norm(moved[:3, 3] - self._last_T[:3, 3]))
+            rot = float(np.linalg.norm(log_so3(moved[:3, :3] @ self._last_T[:3, :3].T)))
         if self._last_vo is not None:
             self._path_since += float(np.linalg.norm(T_vo[:3, 3] - self._last_vo[:3, 3]))
         self._last_T, self._last_vo = T, T_vo.copy()
