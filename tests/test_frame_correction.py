@@ -76,9 +76,10 @@ def test_correction_takes_the_drift_out_of_the_reported_poses():
     e_vo = ate(Trajectory(stamps[20:], np.stack(vo)), gt).rmse
     e_corr = ate(Trajectory(stamps[20:], np.stack(corrected)), gt).rmse
     assert e_vo > 0.02
-    # What is left is the frame g itself moving as the flight grows (it is fitted on
-    # the whole drifted VO trajectory): 0.41 of the VO's error here.
-    assert e_corr < 0.5 * e_vo, (e_vo, e_corr)
+    # g is anchored on the first keyframes and stays put: 0.10 of the VO's error is
+    # left (the drift inside the 60-keyframe local fit). Fitted on the whole drifted
+    # flight so far instead, g moved as the flight grew and left 0.41.
+    assert e_corr < 0.15 * e_vo, (e_vo, e_corr)
 
 
 def test_no_correction_where_map_and_vo_agree():

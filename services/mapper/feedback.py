@@ -19,6 +19,7 @@ from .registration import AgentHandler
 RECENT_KFS = 15
 MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 LOCAL_FIT_KFS = 60  # the agent's newest keyframes that say where the map puts it now
+ANCHOR_KFS = 60  # the agent's first keyframes, which fix its frame g for the whole flight
 MIN_FIT_KFS = 8
 
 
@@ -66,8 +67,8 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     The server holds each of the agent's keyframes twice: as the VO sent it (``T_l_kf``)
     and in the map after registration, loop closures, merges and global optimization
     (``T_m_kf``). Two similarities relate them: ``S_m_l`` fitted on the newest
-    ``n_local`` keyframes (where the agent is now) and ``A_m_l`` fitted on all of them
-    (how the agent's frame sits on the map as a whole). ``S_g_l = A_m_l^-1 S_m_l`` moves
+    ``n_local`` keyframes (where the agent is now) and ``A_m_l`` fitted on its first
+    ``ANCHOR_KFS`` (how the agent's frame sits on the map). ``S_g_l = A_m_l^-1 S_m_l`` moves
     a VO pose to where the map puts it, expressed in frame ``g``: the agent's own frame
     as the map sees it, which stays put while the map's frame changes (a merge moves
     the whole map into another agent's frame; a loop closure re-scales it about the
@@ -85,9 +86,17 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     T_m = np.stack([k.T_m_kf for k in kfs])
     # The whole flight: centres (the evaluation's alignment too); orientations as well
     # when the centres are nearly on a line, which leaves a rotation about it unfixed.
-    c = T_l[:, :3, 3]
+    # The anchor is the same keyframes all flight long. Fitted on the whole flight so
+    # far (as it was), g itself moved as the drifted VO trajectory grew: the reported
+    # poses of early and late in the flight sat in different frames, and the one
+    # alignment of an evaluation (or a drone's map) could not fit both -- the reported
+    # pose came out worse than the raw VO for some agents. The first keyframes have
+    # drifted least, and a merge or loop closure moves them with the rest of the map,
+    # so g stays the agent's own starting frame.
+    a_l, a_m = T_l[:ANCHOR_KFS], T_m[:ANCHOR_KFS]
+    c = a_l[:, :3, 3]
     sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
-    A_m_l = umeyama(c, T_m[:, :3, 3]) if sv[1] > 0.05 * sv[0] else fit_sim3_poses(T_l, T_m)
+    A_m_l = umeyama(c, a_m[:, :3, 3]) if sv[1] > 0.05 * sv[0] else fit_sim3_poses(a_l, a_m)
     S_m_l = fit_sim3_poses(T_l[-n_local:], T_m[-n_local:])
     if A_m_l is None or S_m_l is None:
         return None
