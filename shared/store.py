@@ -1,71 +1,104 @@
-"""The Redis store: every keyframe, map point, map and agent, written incrementally.
+"""The Redis store: the one owner of every key and field HiveMap keeps in Redis.
 
-Layout (prefix ``hm``; ``{a}`` agent id, ``{m}`` map id, ids are decimal):
+The mapper writes, the API and the CLIs read; nothing else names a key. Layout (prefix
+``hm``; ``{a}`` agent id, ``{m}`` map id, ids decimal, gids as in ``shared.ids``,
+matrices little-endian float64 row-major):
 
     hm:agents                SET   agent ids
-    hm:agent:{a}             HASH  map, S_m_l (8 f8: t, q xyzw, s), kf_high, n_kf, n_mp,
-                                   first_ns, last_ns
+    hm:agent_index           HASH  agent -> its index, the high bits of its gids
+    hm:agent_index_next      STR   counter that hands out agent indices
+    hm:agent:{a}             HASH  map, S_m_l (8 f8: t, q xyzw, s: agent's local frame ->
+                                   map), lam (repr float: scale correction of its VO,
+                                   CSfM eq. 2-4), index, kf_high (every keyframe id below
+                                   it is stored), calib (10 f8: w, h, fx, fy, cx, cy,
+                                   k1, k2, p1, p2), first_ns (first contact)
     hm:agent:{a}:kfs         ZSET  stored keyframe ids (score = id)
-    hm:agent:{a}:pose        STR   msgpack latest pose in its map frame
-    hm:kf:{a}:{id}           HASH  map, stamp, pose (T_m_kf 16 f8), pred, parent, T_pred,
-                                   T_par, T_l (the agent's local pose), kp (f4 N x 2),
-                                   oct (u1), desc (u1 N x 32), mpids (i8)
+    hm:agent:{a}:removed     HASH  culled keyframe id -> msgpack [anchor gid, T_anchor_kf
+                                   (4x4 f8 array)]: registration chains through it
+    hm:agent:{a}:pose        STR   msgpack LivePose: the newest pose in its map frame
+    hm:kf:{a}:{id}           HASH  written once: stamp, pred, parent (agent keyframe ids,
+                                   -1 none), T_pred, T_par (16 f8 each), T_l (pose in the
+                                   agent's local map), kp (f4 N x 2 distorted pixels),
+                                   oct (u1 N), desc (u1 N x 32);
+                                   rewritten on every change by the server: map, gid,
+                                   pose (T_m_kf), mpg (i8 N: map-point gid per keypoint,
+                                   -1 none), gparent (spanning-tree parent gid, -1 none)
     hm:mp:{a}                HASH  map point id -> 64-byte record MP_DTYPE: position in
                                    the map frame (3 f8), anchor keyframe gid (i8), descriptor
                                    (32 u1); one field per point so a batch is one HSET
-    hm:maps                  SET   map ids
-    hm:map:{m}               HASH  created_ns, agents (comma separated)
+    hm:alias                 HASH  fused-away point gid -> surviving gid
+    hm:maps                  SET   live map ids (a merged map leaves it)
+    hm:map:{m}               HASH  created_ns, agents (comma separated), merged_into (set
+                                   when the map was fused into that map, CCM-SLAM §4.8:
+                                   it holds nothing then)
     hm:map:{m}:kfs           SET   "a:id" of its keyframes
-    hm:poses                 PUBSUB channel of live poses (msgpack), for the API's WebSocket
+    hm:map:{m}:loops         HASH  "q:c" (keyframe gids) -> S_q_c (16 f8): a loop
+                                   constraint, the Sim(3) mapping keyframe c's camera
+                                   frame into q's (the pose graph's loop edges)
+    hm:poses                 PUBSUB channel of live poses (msgpack LivePose), for the
+                                   API's WebSocket
 
-A batch of keyframes and map points goes in one MULTI/EXEC transaction, so a
-mapper killed mid-write leaves either all of it or none, and the ack is sent only
-after EXEC returns.
+A batch of keyframes and map points goes in one MULTI/EXEC transaction (the writers
+take the caller's ``pipeline()``), so a mapper killed mid-write leaves either all of it
+or none, and the ack is sent only after EXEC returns.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import redis
 
 from shared.geometry import Sim3
-from shared.messages import packb, unpackb
+from shared.ids import local_id_of
+from shared.messages import DecodeError, packb, unpackb
 
-P = "hm"
-POSE_CHANNEL = f"{P}:poses"
-
-
-def k_agent(a: str) -> str:
-    return f"{P}:agent:{a}"
-
-
-def k_agent_kfs(a: str) -> str:
-    return f"{P}:agent:{a}:kfs"
-
-
-def k_mps(a: str) -> str:
-    return f"{P}:mp:{a}"
-
+_P = "hm"
+POSE_CHANNEL = f"{_P}:poses"
+_AGENTS = f"{_P}:agents"
+_AGENT_INDEX = f"{_P}:agent_index"
+_AGENT_INDEX_NEXT = f"{_P}:agent_index_next"
+_ALIAS = f"{_P}:alias"
+_MAPS = f"{_P}:maps"
 
 MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
 
 
-def k_agent_pose(a: str) -> str:
-    return f"{P}:agent:{a}:pose"
+def _k_agent(a: str) -> str:
+    return f"{_P}:agent:{a}"
 
 
-def k_kf(a: str, i: int) -> str:
-    return f"{P}:kf:{a}:{i}"
+def _k_agent_kfs(a: str) -> str:
+    return f"{_k_agent(a)}:kfs"
 
 
-def k_map(m: str) -> str:
-    return f"{P}:map:{m}"
+def _k_agent_removed(a: str) -> str:
+    return f"{_k_agent(a)}:removed"
 
 
-def k_map_kfs(m: str) -> str:
-    return f"{P}:map:{m}:kfs"
+def _k_agent_pose(a: str) -> str:
+    return f"{_k_agent(a)}:pose"
+
+
+def _k_kf(a: str, i: int) -> str:
+    return f"{_P}:kf:{a}:{i}"
+
+
+def _k_mps(a: str) -> str:
+    return f"{_P}:mp:{a}"
+
+
+def _k_map(m: str) -> str:
+    return f"{_P}:map:{m}"
+
+
+def _k_map_kfs(m: str) -> str:
+    return f"{_k_map(m)}:kfs"
+
+
+def _k_map_loops(m: str) -> str:
+    return f"{_k_map(m)}:loops"
 
 
 def _f8(b: bytes | None, shape: tuple[int, ...]) -> np.ndarray | None:
@@ -74,22 +107,75 @@ def _f8(b: bytes | None, shape: tuple[int, ...]) -> np.ndarray | None:
     return np.frombuffer(b, dtype="<f8").reshape(shape).copy()
 
 
+def _b8(a: np.ndarray) -> bytes:
+    return np.asarray(a, "<f8").tobytes()
+
+
+@dataclass
+class LivePose:
+    """An agent's live camera pose placed in its server map (``hm:agent:{a}:pose`` and
+    the ``hm:poses`` channel)."""
+
+    agent: str
+    map_id: str
+    stamp_ns: int
+    T_m_c: np.ndarray  # (4, 4) camera to map
+    kf_ref: int  # the agent keyframe it was placed through
+    tracking: str  # ok | lost | init
+    fps: float
+    recv_ns: int
+
+    def encode(self) -> bytes:
+        return packb(asdict(self))
+
+    @staticmethod
+    def decode(data: bytes) -> LivePose:
+        d = unpackb(data)
+        if not isinstance(d, dict):
+            raise DecodeError("live pose: expected a map")
+        try:
+            T = np.asarray(d["T_m_c"], np.float64).reshape(4, 4)
+            return LivePose(
+                str(d["agent"]), str(d["map_id"]), int(d["stamp_ns"]), T, int(d["kf_ref"]),
+                str(d["tracking"]), float(d["fps"]), int(d["recv_ns"]),
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError) as e:
+            raise DecodeError(f"live pose: {type(e).__name__}: {e}") from e
+
+
+@dataclass
+class AgentState:
+    """What the mapper keeps of an agent (``hm:agent:{a}``)."""
+
+    map_id: str
+    S_m_l: Sim3
+    lam: float
+    index: int
+    kf_high: int
+    calib: np.ndarray | None = None  # (10,), see the layout
+
+
 @dataclass
 class StoredKeyframe:
+    """One ``hm:kf:{a}:{id}``. The server-map state (``map_id`` to ``gparent``) is
+    rewritten on every change; the rest is written once and None where not read."""
+
     agent: str
     id: int
     map_id: str
-    stamp_ns: int
     T_m_kf: np.ndarray
-    pred_id: int
-    parent_id: int
-    T_pred_kf: np.ndarray
-    T_par_kf: np.ndarray
+    gid: int = -1
+    mp_gids: np.ndarray | None = None
+    gparent: int = -1
+    stamp_ns: int = 0
+    pred_id: int = -1
+    parent_id: int = -1
+    T_pred_kf: np.ndarray | None = None
+    T_par_kf: np.ndarray | None = None
+    T_l_kf: np.ndarray | None = None
     keypoints: np.ndarray | None = None
     octaves: np.ndarray | None = None
     descriptors: np.ndarray | None = None
-    mp_ids: np.ndarray | None = None
-    T_l_kf: np.ndarray | None = None
 
 
 @dataclass
@@ -111,51 +197,89 @@ class Store:
     def __init__(self, r: redis.Redis) -> None:
         self.r = r
 
-    # --- writes (mapper) --------------------------------------------------------
+    def ping(self) -> bool:
+        return bool(self.r.ping())
+
+    def close(self) -> None:
+        self.r.close()
+
+    # --- writes (mapper) ------------------------------------------------------------
     def pipeline(self) -> redis.client.Pipeline:
         return self.r.pipeline(transaction=True)
 
+    def agent_index(self, agent: str) -> int:
+        """The agent's index, handed out on first call (atomic across processes)."""
+        v = self.r.hget(_AGENT_INDEX, agent)
+        if v is not None:
+            return int(v)
+        n = int(self.r.incr(_AGENT_INDEX_NEXT))
+        self.r.hsetnx(_AGENT_INDEX, agent, n)
+        return int(self.r.hget(_AGENT_INDEX, agent))
+
     @staticmethod
-    def add_agent(pipe, agent: str, map_id: str, S_m_l: Sim3, now_ns: int) -> None:
-        pipe.sadd(f"{P}:agents", agent)
-        pipe.hset(
-            k_agent(agent),
-            mapping={"map": map_id, "S_m_l": S_m_l.to_array().astype("<f8").tobytes(),
-                     "first_ns": now_ns},
-        )  # fmt: skip
-        pipe.sadd(f"{P}:maps", map_id)
-        pipe.hsetnx(k_map(map_id), "created_ns", now_ns)
-        pipe.hset(k_map(map_id), "agents", agent)
+    def new_agent(pipe, agent: str, map_id: str, now_ns: int) -> None:
+        pipe.sadd(_AGENTS, agent)
+        pipe.hset(_k_agent(agent), "first_ns", now_ns)
+        Store.new_map(pipe, map_id, now_ns)
+
+    @staticmethod
+    def new_map(pipe, map_id: str, now_ns: int) -> None:
+        pipe.sadd(_MAPS, map_id)
+        pipe.hsetnx(_k_map(map_id), "created_ns", now_ns)
+
+    @staticmethod
+    def put_agent(pipe, agent: str, st: AgentState) -> None:
+        fields = {"map": st.map_id, "S_m_l": _b8(st.S_m_l.to_array()),
+                  "lam": repr(float(st.lam)), "index": st.index, "kf_high": st.kf_high}  # fmt: skip
+        if st.calib is not None:
+            fields["calib"] = _b8(st.calib)
+        pipe.hset(_k_agent(agent), mapping=fields)
+
+    @staticmethod
+    def set_map_agents(pipe, map_id: str, agents) -> None:
+        pipe.hset(_k_map(map_id), "agents", ",".join(sorted(agents)))
 
     @staticmethod
     def put_keyframe(pipe, kf: StoredKeyframe) -> None:
+        """A new keyframe, every field, and its entries in the agent's and map's sets."""
+        Store.set_keyframe_state(pipe, kf)
         fields = {
-            "map": kf.map_id,
-            "stamp": kf.stamp_ns,
-            "pose": np.asarray(kf.T_m_kf, "<f8").tobytes(),
-            "pred": kf.pred_id,
-            "parent": kf.parent_id,
-            "T_pred": np.asarray(kf.T_pred_kf, "<f8").tobytes(),
-            "T_par": np.asarray(kf.T_par_kf, "<f8").tobytes(),
-        }
-        if kf.T_l_kf is not None:
-            fields["T_l"] = np.asarray(kf.T_l_kf, "<f8").tobytes()
-        if kf.keypoints is not None:
-            fields.update(
-                kp=np.asarray(kf.keypoints, "<f4").tobytes(),
-                oct=np.asarray(kf.octaves, np.uint8).tobytes(),
-                desc=np.asarray(kf.descriptors, np.uint8).tobytes(),
-            )
-        if kf.mp_ids is not None:
-            fields["mpids"] = np.asarray(kf.mp_ids, "<i8").tobytes()
-        pipe.hset(k_kf(kf.agent, kf.id), mapping=fields)
-        pipe.zadd(k_agent_kfs(kf.agent), {str(kf.id): kf.id})
-        pipe.sadd(k_map_kfs(kf.map_id), f"{kf.agent}:{kf.id}")
-        pipe.hset(k_agent(kf.agent), "last_ns", kf.stamp_ns)
+            "stamp": kf.stamp_ns, "pred": kf.pred_id, "parent": kf.parent_id,
+            "T_pred": _b8(kf.T_pred_kf), "T_par": _b8(kf.T_par_kf), "T_l": _b8(kf.T_l_kf),
+            "kp": np.asarray(kf.keypoints, "<f4").tobytes(),
+            "oct": np.asarray(kf.octaves, np.uint8).tobytes(),
+            "desc": np.asarray(kf.descriptors, np.uint8).tobytes(),
+        }  # fmt: skip
+        pipe.hset(_k_kf(kf.agent, kf.id), mapping=fields)
+        pipe.zadd(_k_agent_kfs(kf.agent), {str(kf.id): kf.id})
+        Store.add_map_keyframe(pipe, kf.map_id, kf.agent, kf.id)
 
     @staticmethod
-    def set_keyframe_pose(pipe, agent: str, kf_id: int, T_m_kf: np.ndarray) -> None:
-        pipe.hset(k_kf(agent, kf_id), "pose", np.asarray(T_m_kf, "<f8").tobytes())
+    def set_keyframe_state(pipe, kf: StoredKeyframe) -> None:
+        """The fields a pose, association or map change rewrites."""
+        pipe.hset(_k_kf(kf.agent, kf.id), mapping={
+            "map": kf.map_id, "gid": kf.gid, "pose": _b8(kf.T_m_kf),
+            "mpg": np.asarray(kf.mp_gids, "<i8").tobytes(), "gparent": kf.gparent,
+        })  # fmt: skip
+
+    @staticmethod
+    def set_keyframe_parent(pipe, agent: str, kf_id: int, gparent: int) -> None:
+        pipe.hset(_k_kf(agent, kf_id), "gparent", gparent)
+
+    @staticmethod
+    def add_map_keyframe(pipe, map_id: str, agent: str, kf_id: int) -> None:
+        pipe.sadd(_k_map_kfs(map_id), f"{agent}:{kf_id}")
+
+    @staticmethod
+    def remove_keyframe(pipe, agent: str, kf_id: int, map_id: str) -> None:
+        pipe.delete(_k_kf(agent, kf_id))
+        pipe.zrem(_k_agent_kfs(agent), str(kf_id))
+        pipe.srem(_k_map_kfs(map_id), f"{agent}:{kf_id}")
+
+    @staticmethod
+    def put_removed(pipe, agent: str, kf_id: int, anchor_gid: int, T_anchor_kf) -> None:
+        """A culled keyframe's anchor, so registration can still chain through it."""
+        pipe.hset(_k_agent_removed(agent), str(kf_id), packb([int(anchor_gid), T_anchor_kf]))
 
     @staticmethod
     def put_points(pipe, agent: str, ids, pos, ref_g, desc) -> None:
@@ -168,31 +292,78 @@ class Store:
         rec["desc"] = desc
         raw = rec.tobytes()
         n = MP_DTYPE.itemsize
-        pipe.hset(k_mps(agent), mapping={int(i): raw[j * n : (j + 1) * n]
-                                         for j, i in enumerate(ids)})  # fmt: skip
+        pipe.hset(_k_mps(agent), mapping={int(i): raw[j * n : (j + 1) * n]
+                                          for j, i in enumerate(ids)})  # fmt: skip
 
     @staticmethod
     def del_points(pipe, agent: str, ids) -> None:
         if len(ids):
-            pipe.hdel(k_mps(agent), *[int(i) for i in ids])
+            pipe.hdel(_k_mps(agent), *[int(i) for i in ids])
 
     @staticmethod
-    def set_kf_high(pipe, agent: str, kf_high: int) -> None:
-        pipe.hset(k_agent(agent), "kf_high", kf_high)
+    def put_aliases(pipe, aliases: dict[int, int]) -> None:
+        if aliases:
+            pipe.hset(_ALIAS, mapping={str(d): str(k) for d, k in aliases.items()})
 
-    def put_pose(self, agent: str, pose: dict) -> None:
-        data = packb(pose)
+    @staticmethod
+    def put_loops(pipe, map_id: str, loops) -> None:
+        """Loop constraints ``(q, c, S_q_c)`` of a map."""
+        for q, c, S in loops:
+            pipe.hset(_k_map_loops(map_id), f"{q}:{c}", _b8(S))
+
+    @staticmethod
+    def retire_map(pipe, source: str, target: str) -> None:
+        """``source`` was fused into ``target`` (whose writes carry its keyframes)."""
+        pipe.hset(_k_map(source), mapping={"merged_into": target, "agents": ""})
+        pipe.srem(_MAPS, source)
+        pipe.delete(_k_map_kfs(source), _k_map_loops(source))
+
+    def put_pose(self, pose: LivePose) -> None:
+        data = pose.encode()
         p = self.r.pipeline(transaction=False)
-        p.set(k_agent_pose(agent), data)
+        p.set(_k_agent_pose(pose.agent), data)
         p.publish(POSE_CHANNEL, data)
         p.execute()
 
+    # --- reads (mapper restart) ------------------------------------------------------
+    def agent_names(self) -> dict[int, str]:
+        """Agent index -> agent id."""
+        return {int(v): k.decode() for k, v in self.r.hgetall(_AGENT_INDEX).items()}
+
+    def agent_state(self, agent: str) -> AgentState | None:
+        h = self.r.hgetall(_k_agent(agent))
+        if not h or b"index" not in h:
+            return None
+        return AgentState(
+            h[b"map"].decode(), Sim3.from_array(_f8(h[b"S_m_l"], (8,))),
+            float(h.get(b"lam", 1.0)), int(h[b"index"]), int(h.get(b"kf_high", -1)),
+            _f8(h.get(b"calib"), (10,)),
+        )  # fmt: skip
+
+    def removed(self, agent: str) -> dict[int, tuple[int, np.ndarray]]:
+        """Culled keyframe id -> (anchor gid, T_anchor_kf)."""
+        out = {}
+        for kid, v in self.r.hgetall(_k_agent_removed(agent)).items():
+            g, T = unpackb(v)
+            out[int(kid)] = (int(g), np.array(T))
+        return out
+
+    def aliases(self) -> dict[int, int]:
+        return {int(k): int(v) for k, v in self.r.hgetall(_ALIAS).items()}
+
+    def loops(self, map_id: str) -> list[tuple[int, int, np.ndarray]]:
+        out = []
+        for field, v in self.r.hgetall(_k_map_loops(map_id)).items():
+            q, c = (int(x) for x in field.decode().split(":"))
+            out.append((q, c, _f8(v, (4, 4))))
+        return out
+
     # --- reads -------------------------------------------------------------------
     def agents(self) -> list[str]:
-        return sorted(a.decode() for a in self.r.smembers(f"{P}:agents"))
+        return sorted(a.decode() for a in self.r.smembers(_AGENTS))
 
     def agent_info(self, agent: str) -> dict | None:
-        h = self.r.hgetall(k_agent(agent))
+        h = self.r.hgetall(_k_agent(agent))
         if not h:
             return None
         S = Sim3.from_array(_f8(h[b"S_m_l"], (8,))) if b"S_m_l" in h else Sim3.identity()
@@ -201,50 +372,53 @@ class Store:
             "map_id": h.get(b"map", b"").decode(),
             "S_m_l": S,
             "kf_high": int(h.get(b"kf_high", -1)),
-            "n_kf": int(self.r.zcard(k_agent_kfs(agent))),
-            "n_mp": int(self.r.hlen(k_mps(agent))),
+            "n_kf": int(self.r.zcard(_k_agent_kfs(agent))),
+            "n_mp": int(self.r.hlen(_k_mps(agent))),
             "first_ns": int(h.get(b"first_ns", 0)),
-            "last_ns": int(h.get(b"last_ns", 0)),
         }
 
-    def latest_pose(self, agent: str) -> dict | None:
-        b = self.r.get(k_agent_pose(agent))
-        return None if b is None else unpackb(b)
+    def latest_pose(self, agent: str) -> LivePose | None:
+        b = self.r.get(_k_agent_pose(agent))
+        return None if b is None else LivePose.decode(b)
 
     def keyframe_ids(self, agent: str) -> list[int]:
-        return [int(x) for x in self.r.zrange(k_agent_kfs(agent), 0, -1)]
+        return [int(x) for x in self.r.zrange(_k_agent_kfs(agent), 0, -1)]
 
     def mappoint_ids(self, agent: str) -> list[int]:
-        return sorted(int(x) for x in self.r.hkeys(k_mps(agent)))
+        return sorted(int(x) for x in self.r.hkeys(_k_mps(agent)))
 
     def keyframes(self, agent: str, ids: list[int] | None = None, full: bool = False):
+        """The agent's stored keyframes (``ids``, default all), sorted by id. Without
+        ``full`` only the pose graph (map, stamp, poses, pred/parent); with it also
+        the server-map state and keypoints (the mapper's restart)."""
         ids = self.keyframe_ids(agent) if ids is None else ids
         names = [b"map", b"stamp", b"pose", b"pred", b"parent", b"T_pred", b"T_par", b"T_l"]
         if full:
-            names += [b"kp", b"oct", b"desc", b"mpids"]
+            names += [b"gid", b"mpg", b"gparent", b"kp", b"oct", b"desc"]
         p = self.r.pipeline(transaction=False)
         for i in ids:
-            p.hmget(k_kf(agent, i), names)
+            p.hmget(_k_kf(agent, i), names)
         out: list[StoredKeyframe] = []
-        for i, vals in zip(ids, p.execute(), strict=True):
-            if vals[0] is None:
+        for i, v in zip(ids, p.execute(), strict=True):
+            if v[0] is None:
                 continue
             kf = StoredKeyframe(
-                agent, i, vals[0].decode(), int(vals[1]), _f8(vals[2], (4, 4)),
-                int(vals[3]), int(vals[4]), _f8(vals[5], (4, 4)), _f8(vals[6], (4, 4)),
-                T_l_kf=_f8(vals[7], (4, 4)),
+                agent, i, v[0].decode(), _f8(v[2], (4, 4)), stamp_ns=int(v[1]),
+                pred_id=int(v[3]), parent_id=int(v[4]), T_pred_kf=_f8(v[5], (4, 4)),
+                T_par_kf=_f8(v[6], (4, 4)), T_l_kf=_f8(v[7], (4, 4)),
             )  # fmt: skip
-            if full and vals[8] is not None:
-                kf.keypoints = np.frombuffer(vals[8], "<f4").reshape(-1, 2).copy()
-                kf.octaves = np.frombuffer(vals[9], np.uint8).copy()
-                kf.descriptors = np.frombuffer(vals[10], np.uint8).reshape(-1, 32).copy()
-                kf.mp_ids = np.frombuffer(vals[11], "<i8").copy()
+            if full:
+                kf.gid, kf.gparent = int(v[8]), int(v[10])
+                kf.mp_gids = np.frombuffer(v[9], "<i8").copy()
+                kf.keypoints = np.frombuffer(v[11], "<f4").reshape(-1, 2).copy()
+                kf.octaves = np.frombuffer(v[12], np.uint8).copy()
+                kf.descriptors = np.frombuffer(v[13], np.uint8).reshape(-1, 32).copy()
             out.append(kf)
         return out
 
     def map_point_records(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
         """(ids, records of MP_DTYPE) of an agent's map points, sorted by id."""
-        h = self.r.hgetall(k_mps(agent))
+        h = self.r.hgetall(_k_mps(agent))
         if not h:
             return np.zeros(0, np.int64), np.zeros(0, MP_DTYPE)
         ids = np.array([int(k) for k in h], np.int64)
@@ -257,7 +431,7 @@ class Store:
         map_id = info["map_id"] if info else ""
         ids, rec = self.map_point_records(agent)
         return [
-            StoredMapPoint(agent, int(i), map_id, int(r["ref_g"]) & ((1 << 40) - 1),
+            StoredMapPoint(agent, int(i), map_id, int(local_id_of(int(r["ref_g"]))),
                            np.zeros(3), r["pos"].copy(), r["desc"].copy())
             for i, r in zip(ids, rec, strict=True)
         ]  # fmt: skip
@@ -274,13 +448,13 @@ class Store:
         )
 
     def maps(self) -> list[str]:
-        return sorted(m.decode() for m in self.r.smembers(f"{P}:maps"))
+        return sorted(m.decode() for m in self.r.smembers(_MAPS))
 
     def map_info(self, map_id: str) -> dict | None:
-        h = self.r.hgetall(k_map(map_id))
+        h = self.r.hgetall(_k_map(map_id))
         if not h:
             return None
-        members = [m.decode() for m in self.r.smembers(k_map_kfs(map_id))]
+        members = [m.decode() for m in self.r.smembers(_k_map_kfs(map_id))]
         agents = sorted(
             {m.split(":", 1)[0] for m in members}
             | set(a for a in h.get(b"agents", b"").decode().split(",") if a)
@@ -290,13 +464,12 @@ class Store:
             "created_ns": int(h.get(b"created_ns", 0)),
             "agents": agents,
             "n_kf": len(members),
-            # Set when the map was fused into another (CCM-SLAM §4.8); it holds nothing then.
             "merged_into": h[b"merged_into"].decode() if b"merged_into" in h else None,
         }
 
     def map_keyframes(self, map_id: str) -> list[tuple[str, int]]:
         out = []
-        for m in self.r.smembers(k_map_kfs(map_id)):
+        for m in self.r.smembers(_k_map_kfs(map_id)):
             a, _, i = m.decode().rpartition(":")
             out.append((a, int(i)))
         return sorted(out)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
 from pydantic import BaseModel
 
 from shared.geometry import pose_to_tq
+from shared.store import LivePose
 
 
 class PoseOut(BaseModel):
@@ -63,11 +63,10 @@ class ErrorOut(BaseModel):
     detail: object | None = None
 
 
-def pose_out(doc: dict) -> PoseOut:
-    p, q = pose_to_tq(np.asarray(doc["T_m_c"], float))
+def pose_out(pose: LivePose) -> PoseOut:
+    p, q = pose_to_tq(pose.T_m_c)
     return PoseOut(
-        agent=doc["agent"], map_id=doc.get("map_id", ""), stamp_ns=int(doc["stamp_ns"]),
-        t=int(doc["stamp_ns"]) * 1e-9, position=p.tolist(), quaternion_xyzw=q.tolist(),
-        kf_ref=int(doc.get("kf_ref", -1)), tracking=str(doc.get("tracking", "ok")),
-        fps=float(doc.get("fps", 0.0)),
+        agent=pose.agent, map_id=pose.map_id, stamp_ns=pose.stamp_ns, t=pose.stamp_ns * 1e-9,
+        position=p.tolist(), quaternion_xyzw=q.tolist(), kf_ref=pose.kf_ref,
+        tracking=pose.tracking, fps=pose.fps,
     )  # fmt: skip

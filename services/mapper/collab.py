@@ -45,10 +45,9 @@ from shared.messages import (
     MapMerged,
     Match,
     OptimizeRequest,
-    packb,
 )
 from shared.metrics import MAP_SIZE, REJECTED
-from shared.store import P, k_agent, k_kf, k_map, k_map_kfs
+from shared.store import Store
 
 from . import persist
 from .capture import build_request, capture_map
@@ -76,10 +75,6 @@ def _spread(n: int, k: int) -> np.ndarray:
     if n <= k:
         return np.arange(n)
     return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
-
-
-def loops_key(map_id: str) -> str:
-    return f"{k_map(map_id)}:loops"
 
 
 class Collaboration:
@@ -113,11 +108,8 @@ class Collaboration:
     # --- state --------------------------------------------------------------------------
     def load(self) -> None:
         """Loop constraints from Redis, and the loop edges they make."""
-        r = self.svc.store.r
         for map_id, smap in self.svc.maps.items():
-            for field, v in r.hgetall(loops_key(map_id)).items():
-                q, c = (int(x) for x in field.decode().split(":"))
-                S = np.frombuffer(v, "<f8").reshape(4, 4).copy()
+            for q, c, S in self.svc.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
 
@@ -304,16 +296,14 @@ class Collaboration:
         svc = self.svc
         smap = svc.maps[map_id]
         pipe = svc.store.pipeline()
-        for drop, keep in aliases.items():
-            pipe.hset(persist.K_ALIAS, str(drop), str(keep))
+        Store.put_aliases(pipe, aliases)
         svc.aliases.update(aliases)
         persist.delete_points(pipe, set(aliases), svc.names)
         for g in changed:
             kf = smap.kfs.get(g)
             if kf is not None:
-                pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, map_id))
-        for lc in loops:
-            pipe.hset(loops_key(map_id), f"{lc.q}:{lc.c}", lc.S_q_c.astype("<f8").tobytes())
+                persist.write_kf_state(pipe, kf, map_id)
+        Store.put_loops(pipe, map_id, [(lc.q, lc.c, lc.S_q_c) for lc in loops])
         pipe.execute()
 
     def _persist_merge(self, target: str, source: str, kfs: list[int], mps: list[int]) -> None:
@@ -322,8 +312,8 @@ class Collaboration:
         pipe = svc.store.pipeline()
         for g in kfs:
             kf = smap.kfs[g]
-            pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, target))
-            pipe.sadd(k_map_kfs(target), f"{kf.agent}:{kf.id}")
+            persist.write_kf_state(pipe, kf, target)
+            Store.add_map_keyframe(pipe, target, kf.agent, kf.id)
         persist.write_points(pipe, smap, mps, svc.names)
         for h in svc.handlers.values():
             if h.smap is smap:
@@ -333,10 +323,8 @@ class Collaboration:
                     entry = smap.culled.get(h.kf_gid(kid))
                     if entry is not None:
                         h.removed[kid] = entry
-                        pipe.hset(f"{k_agent(h.agent)}:removed", str(kid), packb(list(entry)))
-        pipe.hset(k_map(source), mapping={"merged_into": target, "agents": ""})
-        pipe.srem(f"{P}:maps", source)
-        pipe.delete(k_map_kfs(source), loops_key(source))
+                        Store.put_removed(pipe, h.agent, kid, *entry)
+        Store.retire_map(pipe, source, target)
         pipe.execute()
 
     # --- optimization ------------------------------------------------------------------
@@ -476,7 +464,7 @@ class Collaboration:
                 for g in kf_part:
                     kf = smap.kfs.get(g)
                     if kf is not None:
-                        pipe.hset(k_kf(kf.agent, kf.id), mapping=persist.kf_fields(kf, map_id))
+                        persist.write_kf_state(pipe, kf, map_id)
                 persist.write_points(pipe, smap, mp_part, svc.names)
                 pipe.execute()
 

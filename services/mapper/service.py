@@ -42,7 +42,7 @@ from shared.geometry import Sim3
 from shared.messages import Ack, DecodeError, KeyframeBatch, PoseUpdate, packb
 from shared.metrics import KEYFRAME_LATENCY, MAP_SIZE, PROCESSING, REJECTED, STORED, UP
 from shared.settings import Settings
-from shared.store import Store, connect
+from shared.store import LivePose, Store, connect
 from shared.transport import Bus, Received, open_session
 
 from . import persist
@@ -249,7 +249,7 @@ class MapperService:
     # --- state ------------------------------------------------------------------------
     def load(self) -> None:
         self.maps, self.handlers = persist.load_all(self.store, self.params)
-        self.names = persist.index_names(self.store)
+        self.names = self.store.agent_names()
         self.collab.load()
         for h in self.handlers.values():
             self.aliases.update(h.aliases)
@@ -269,7 +269,7 @@ class MapperService:
         with self._lock:
             h = self.handlers.get(agent)
             if h is None:
-                idx = persist.agent_index(self.store, agent)
+                idx = self.store.agent_index(agent)
                 self.names[idx] = agent
                 map_id = map_id or initial_map_id(agent)
                 smap = self.maps.setdefault(map_id, ServerMap(map_id))
@@ -277,7 +277,6 @@ class MapperService:
                 h.aliases = self.aliases
                 pipe = self.store.pipeline()
                 persist.write_handler(pipe, h, new=True)
-                pipe.hset(f"hm:agent:{agent}", "first_ns", time.time_ns())
                 pipe.execute()
                 self.handlers[agent] = h
                 log.info("new agent %s with map %s", agent, map_id, extra={"agent": agent})
@@ -415,7 +414,7 @@ class MapperService:
             for o in children:
                 if o in smap.kfs:
                     ok = smap.kfs[o]
-                    pipe.hset(f"hm:kf:{ok.agent}:{ok.id}", "gparent", ok.parent)
+                    Store.set_keyframe_parent(pipe, ok.agent, ok.id, ok.parent)
             CULLED.labels(smap.map_id).inc()
         pipe.execute()
         MAP_SIZE.labels(smap.map_id).set(len(smap.kfs))
@@ -446,7 +445,7 @@ class MapperService:
             self.bus.put(keys.agent_map(h.agent), data, reliable=False)
             FEEDBACK_BYTES.labels(h.agent).inc(len(data))
 
-    def process_pose_bytes(self, key: str, payload: bytes, recv_ns: int) -> dict | None:
+    def process_pose_bytes(self, key: str, payload: bytes, recv_ns: int) -> LivePose | None:
         p = self.decode_pose(key, payload)
         return None if p is None else self.store_pose(p, recv_ns)
 
@@ -462,19 +461,16 @@ class MapperService:
             return None
         return p
 
-    def store_pose(self, p: PoseUpdate, recv_ns: int) -> dict | None:
+    def store_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
         h = self.handlers.get(p.agent)
         if h is None:
             return None  # no keyframe yet: no map frame to place it in
         T = h.pose_of(p.kf_ref, p.T_ref_c)
         if T is None:
             return None
-        doc = {
-            "agent": p.agent, "map_id": h.map_id, "stamp_ns": p.stamp_ns, "T_m_c": T,
-            "kf_ref": p.kf_ref, "tracking": p.tracking, "fps": p.fps, "recv_ns": recv_ns,
-        }  # fmt: skip
-        self.store.put_pose(p.agent, doc)
-        return doc
+        pose = LivePose(p.agent, h.map_id, p.stamp_ns, T, p.kf_ref, p.tracking, p.fps, recv_ns)
+        self.store.put_pose(pose)
+        return pose
 
     def state_digest(self) -> dict:
         """Digest of every map and agent handler (answered on ``hivemap/mapper/state``)."""
@@ -593,7 +589,7 @@ class MapperService:
         if self.session is not None:
             self.session.close()
             self.session = None
-        self.store.r.close()
+        self.store.close()
 
 
 class _null:

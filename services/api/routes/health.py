@@ -21,7 +21,7 @@ def health() -> dict:
 @router.get("/ready")
 def ready(store: StoreDep):
     try:
-        store.r.ping()
+        store.ping()
     except redis.RedisError as e:
         return JSONResponse({"status": "not ready", "error": f"redis: {e}"}, status_code=503)
     return {"status": "ready"}

@@ -8,8 +8,8 @@ import logging
 import redis.asyncio as aioredis
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from shared.messages import DecodeError, unpackb
-from shared.store import POSE_CHANNEL
+from shared.messages import DecodeError
+from shared.store import POSE_CHANNEL, LivePose
 
 from ..metrics import WS_CLIENTS
 from ..models import pose_out
@@ -34,8 +34,8 @@ async def ws_poses(ws: WebSocket) -> None:
             if msg is None:
                 continue
             try:
-                doc = pose_out(unpackb(msg["data"]))
-            except (DecodeError, KeyError, TypeError, ValueError) as e:
+                doc = pose_out(LivePose.decode(msg["data"]))
+            except DecodeError as e:
                 log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
                 continue
             await ws.send_text(json.dumps({"type": "pose", **doc.model_dump()}))

@@ -1,0 +1,35 @@
+"""Global ids: one int64 names a keyframe or map point across every agent.
+
+An agent's keyframe and map-point ids are its own small integers; the mapper gives each
+agent an index (``hm:agent_index`` in ``shared.store``) and the global id is
+``agent_index << ID_BITS | local_id``, so ids from different agents never collide and
+arrays of ids stay plain int64. Every function works on ints and on numpy int arrays.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import numpy as np
+
+ID_BITS = 40  # local ids below 2**40; agent indices above
+LOCAL_MASK = (1 << ID_BITS) - 1
+
+IntOrArray = TypeVar("IntOrArray", int, np.ndarray)
+
+
+def gid(agent_index: IntOrArray, local_id: IntOrArray) -> IntOrArray:
+    return (agent_index << ID_BITS) | local_id
+
+
+def agent_index_of(g: IntOrArray) -> IntOrArray:
+    return g >> ID_BITS
+
+
+def local_id_of(g: IntOrArray) -> IntOrArray:
+    return g & LOCAL_MASK
+
+
+def split_gid(g: int) -> tuple[int, int]:
+    """(agent index, local id)."""
+    return g >> ID_BITS, g & LOCAL_MASK
