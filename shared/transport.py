@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from shared.metrics import BYTES, INJECTED_DELAY, INJECTED_DROPS, MESSAGES
+from shared.metrics import BYTES, INJECTED_DELAY, INJECTED_DROPS, MESSAGES, REJECTED
 from shared.settings import InjectSettings, ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -218,3 +218,35 @@ class Bus:
                 p.undeclare()
         self._subs.clear()
         self._pubs.clear()
+
+
+def get_all(q: queue.Queue) -> list:
+    """Everything queued right now, oldest first, without waiting."""
+    out = []
+    with contextlib.suppress(queue.Empty):
+        while True:
+            out.append(q.get_nowait())
+    return out
+
+
+def drain(
+    q: queue.Queue,
+    stop: threading.Event,
+    handle: Callable[[Received], object],
+    service: str,
+    what: str,
+    timeout: float = 0.2,
+) -> None:
+    """A worker thread's loop over a subscription queue (Zenoh callbacks only enqueue):
+    ``handle`` each item until ``stop`` is set. An exception is counted as rejected
+    ("internal") and logged, and the loop goes on with the next item."""
+    while not stop.is_set():
+        try:
+            item = q.get(timeout=timeout)
+        except queue.Empty:
+            continue
+        try:
+            handle(item)
+        except Exception:
+            REJECTED.labels(service, item.key, "internal").inc()
+            log.exception("%s failed", what, extra={"key": item.key})

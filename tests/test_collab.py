@@ -10,10 +10,11 @@ import pytest
 from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.mapper.merge import fuse_matched, move_map
-from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest, gid
+from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest
 from services.mapper.service import MapperService
 from services.optimizer.service import OptimizerService, Superseded
 from shared.geometry import Sim3, exp_so3, se3_inv
+from shared.ids import gid, local_id_of
 from shared.messages import Ack, Match, OptimizeRequest
 from shared.settings import Settings
 from shared.store import Store, connect
@@ -94,8 +95,8 @@ def _match_from_truth(svc, sims, gts, qa: str, ca: str) -> Match:
     S = Sim3(T_q_c[:3, :3], T_q_c[:3, 3] * sq, sq / sc)
     inv_q = {m: lm for lm, m in sims[qa].lm_to_mp.items()}
     inv_c = {m: lm for lm, m in sims[ca].lm_to_mp.items()}
-    lm_q = {inv_q[int(g) & ((1 << 40) - 1)]: int(g) for g in kq.mp[kq.mp >= 0]}
-    lm_c = {inv_c[int(g) & ((1 << 40) - 1)]: int(g) for g in kc.mp[kc.mp >= 0]}
+    lm_q = {inv_q[local_id_of(int(g))]: int(g) for g in kq.mp[kq.mp >= 0]}
+    lm_c = {inv_c[local_id_of(int(g))]: int(g) for g in kc.mp[kc.mp >= 0]}
     both = sorted(set(lm_q) & set(lm_c))
     assert len(both) >= 30, "the chosen keyframes should see a common place"
     return Match(hq.map_id, kq.gid, hc.map_id, kc.gid, S.matrix(),
@@ -248,7 +249,7 @@ def test_feedback_after_a_merge_carries_what_the_agent_lacks(redis_url, world):
     assert chunk is not None and len(chunk.mp_ids) > 0
     smap = hb.smap
     lo, hi = hb.kf_gid(max(hb.latest_kf - RECENT_KFS, 0)), hb.kf_gid(hb.latest_kf)
-    gids = [(svc.handlers[a].index << 40) | int(i) for a, i in
+    gids = [gid(svc.handlers[a].index, int(i)) for a, i in
             zip(chunk.mp_agents, chunk.mp_ids.tolist(), strict=True)]  # fmt: skip
     assert all(not any(lo <= o <= hi for o in smap.mps[g].obs) for g in gids)
     assert "A" in chunk.kf_agents and "A" in chunk.mp_agents

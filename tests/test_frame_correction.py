@@ -6,8 +6,9 @@ import numpy as np
 
 from services.mapper.feedback import frame_correction
 from services.mapper.registration import AgentHandler
-from services.mapper.server_map import ServerKeyframe, ServerMap, gid
+from services.mapper.server_map import ServerKeyframe, ServerMap
 from shared.geometry import Sim3, exp_so3, fit_sim3_poses
+from shared.ids import gid
 from shared.trajectory import Trajectory, ate, load_euroc_gt
 
 

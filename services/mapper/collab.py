@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import queue
 import threading
 import time
 from typing import TYPE_CHECKING
@@ -478,23 +477,3 @@ class Collaboration:
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
-
-
-class Worker:
-    """One thread draining one queue into a handler (Zenoh callbacks only enqueue)."""
-
-    def __init__(self, name: str, q: queue.Queue, fn, stop: threading.Event) -> None:
-        self.q, self.fn, self.stop = q, fn, stop
-        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
-
-    def _run(self) -> None:
-        while not self.stop.is_set():
-            try:
-                item = self.q.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                self.fn(item.key, item.payload)
-            except Exception:
-                REJECTED.labels(SERVICE, item.key, "internal").inc()
-                log.exception("%s failed", self.thread.name)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
+from shared.ids import agent_index_of, local_id_of
 from shared.messages import MapChunk
 
 from .registration import AgentHandler
@@ -175,7 +176,7 @@ def build_chunk(
             idx.append(i)
             sent.add(kf.gid)
     # Agent of each point from its gid's high bits, looked up once per agent.
-    ai, inv = np.unique(mp_gids >> 40, return_inverse=True)
+    ai, inv = np.unique(agent_index_of(mp_gids), return_inverse=True)
     lut = np.array([names.get(int(a), "") for a in ai.tolist()], dtype=object)
     mp_agents = lut[inv].tolist() if len(mp_gids) else []
     return MapChunk(
@@ -186,7 +187,7 @@ def build_chunk(
         kf_keypoints=kp, kf_descriptors=desc, kf_mp_index=idx,
         # Point ids are agent-local: the agent index (high bits) names their agent.
         mp_agents=mp_agents,
-        mp_ids=mp_gids & ((1 << 40) - 1),
+        mp_ids=local_id_of(mp_gids),
         p_ref=p_ref.astype(np.float64),
         mp_descriptors=(np.concatenate([p.descriptor for p in pts]) if pts
                         else np.zeros(0, np.uint8)).astype(np.uint8).reshape(-1, 32),

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import random
 
-from .server_map import ID_BITS, ServerMap
+from shared.ids import agent_index_of
+
+from .server_map import ServerMap
 
 # The agent's local BA still moves its newest keyframes (a window of 7) and sends their
 # new poses; one culled there breaks the chain the following keyframes register through,
@@ -56,12 +58,12 @@ def find_redundant(
     # Newest gid per agent (the agent index is the gid's high bits).
     newest: dict[int, int] = {}
     for g in smap.kfs:
-        a = g >> ID_BITS
+        a = agent_index_of(g)
         if g > newest.get(a, -1):
             newest[a] = g
     out = []
     for g in [start, *smap.covisible(start)][:max_checks]:
-        if g in protected or g in out or g > newest[g >> ID_BITS] - keep_newest:
+        if g in protected or g in out or g > newest[agent_index_of(g)] - keep_newest:
             continue
         if is_redundant(smap, g, ratio, min_others):
             out.append(g)

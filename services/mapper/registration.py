@@ -23,11 +23,12 @@ import numpy as np
 
 from shared.camera import PinholeRadTan
 from shared.geometry import Sim3, scale_translation, se3_inv, transform_points
+from shared.ids import gid, local_id_of
 from shared.messages import KeyframeBatch, MapPoints, NewKeyframe
 
 from .fusion import fuse_by_projection
 from .pose_refine import refine_pose
-from .server_map import ID_BITS, NO_MP, ServerKeyframe, ServerMap, ServerMapPoint, gid
+from .server_map import NO_MP, ServerKeyframe, ServerMap, ServerMapPoint
 
 
 @dataclass
@@ -246,7 +247,7 @@ class AgentHandler:
         g = self.kf_gid(kf.id)
         xy = cam.undistort_points(kf.keypoints).astype(np.float64)
         has = kf.mp_ids >= 0
-        mp = np.where(has, (self.index << ID_BITS) | kf.mp_ids.astype(np.int64), NO_MP)
+        mp = np.where(has, gid(self.index, kf.mp_ids.astype(np.int64)), NO_MP)
         if self.aliases:
             al = self.aliases
             for j in [j for j, m in enumerate(mp.tolist()) if m in al]:
@@ -401,7 +402,7 @@ class AgentHandler:
         par = kf.parent if kf.parent in self.smap.kfs else None
         if par is None:
             cands = [g for g, k in self.smap.kfs.items() if k.agent == self.agent and g != kf.gid]
-            par = min(cands, key=lambda g: abs((g & ((1 << 40) - 1)) - kf.id), default=None)
+            par = min(cands, key=lambda g: abs(local_id_of(g) - kf.id), default=None)
         if par is not None:
             entry = (par, se3_inv(self.smap.kfs[par].T_m_kf) @ kf.T_m_kf)
             self.removed[kf.id] = entry

@@ -1,7 +1,7 @@
 """The server map: keyframes, map points, observations, covisibility, spanning tree.
 
 Pure data structure (no transport, no storage). Keyframes and map points are
-identified map-wide by integer gids, ``agent_index << 40 | local id``, so ids from
+identified map-wide by integer gids (``shared.ids``: agent index high, local id low), so ids from
 different agents never collide and arrays of ids stay plain int64.
 
 Graph definitions follow ORB-SLAM, as CCM-SLAM uses them (§4.2):
@@ -23,16 +23,7 @@ import numpy as np
 
 COVIS_MIN = 15
 STRONG = 100
-ID_BITS = 40
 NO_MP = -1
-
-
-def gid(agent_index: int, local_id: int) -> int:
-    return (agent_index << ID_BITS) | local_id
-
-
-def split_gid(g: int) -> tuple[int, int]:
-    return g >> ID_BITS, g & ((1 << ID_BITS) - 1)
 
 
 @dataclass

@@ -27,7 +27,6 @@ lock alone does not give the actor priority.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import queue
 import random
@@ -43,10 +42,10 @@ from shared.messages import Ack, DecodeError, KeyframeBatch, PoseUpdate, packb
 from shared.metrics import KEYFRAME_LATENCY, MAP_SIZE, PROCESSING, REJECTED, STORED, UP
 from shared.settings import Settings
 from shared.store import LivePose, Store, connect
-from shared.transport import Bus, Received, open_session
+from shared.transport import Bus, Received, drain, get_all, open_session
 
 from . import persist
-from .collab import Collaboration, Worker
+from .collab import Collaboration
 from .feedback import build_chunk
 from .locks import MapLock
 from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
@@ -503,37 +502,29 @@ class MapperService:
         self.kf_q = self.bus.subscribe(keys.ALL_AGENT_KF)
         self.pose_q = self.bus.subscribe(keys.ALL_AGENT_POSE, maxsize=256)
         c = self.collab
-        workers = [
-            Worker("mapper-match", self.bus.subscribe(keys.MATCH), c.on_match_bytes, self._stop),
-            Worker("mapper-correction", self.bus.subscribe(keys.ALL_MAP_CORRECTION),
-                   c.on_correction_bytes, self._stop),
+        loops = [
+            ("kf", drain, (self.kf_q, self._stop, self._dispatch, SERVICE, "dispatch")),
+            ("match", drain, (self.bus.subscribe(keys.MATCH), self._stop,
+                              lambda it: c.on_match_bytes(it.key, it.payload), SERVICE,
+                              "match")),
+            ("correction", drain, (self.bus.subscribe(keys.ALL_MAP_CORRECTION), self._stop,
+                                   lambda it: c.on_correction_bytes(it.key, it.payload),
+                                   SERVICE, "correction")),
+            ("pose", self._pose_worker, ()),
+            ("optimize", self._optimize_scheduler, ()),
         ]  # fmt: skip
-        for name, fn in (("kf", self._dispatch), ("pose", self._pose_worker),
-                         ("optimize", self._optimize_scheduler)):  # fmt: skip
-            t = threading.Thread(target=fn, name=f"mapper-{name}", daemon=True)
+        for name, fn, args in loops:
+            t = threading.Thread(target=fn, args=args, name=f"mapper-{name}", daemon=True)
             t.start()
             self._threads.append(t)
-        for w in workers:
-            w.thread.start()
-            self._threads.append(w.thread)
         UP.labels(SERVICE).set(1)
         log.info("mapper running")
 
-    def _dispatch(self) -> None:
-        while not self._stop.is_set():
-            try:
-                item: Received = self.kf_q.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                batch = self.decode_kf(item.key, item.payload)
-                if batch is None:
-                    continue
-                h = self.handler(batch.agent)
-                self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
-            except Exception:
-                REJECTED.labels(SERVICE, item.key, "internal").inc()
-                log.exception("dispatch failed", extra={"key": item.key})
+    def _dispatch(self, item: Received) -> None:
+        batch = self.decode_kf(item.key, item.payload)
+        if batch is not None:
+            h = self.handler(batch.agent)
+            self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
 
     def _optimize_scheduler(self) -> None:
         """Sends debounced optimization requests (a copy of the map each)."""
@@ -554,9 +545,7 @@ class MapperService:
             except queue.Empty:
                 continue
             self.wait_for_batches(max_s=0.1)
-            with contextlib.suppress(queue.Empty):
-                while True:
-                    items.append(self.pose_q.get_nowait())
+            items += get_all(self.pose_q)
             # Every message is decoded (bad ones are counted); the newest good one per
             # agent is stored.
             newest: dict[str, tuple[PoseUpdate, int]] = {}

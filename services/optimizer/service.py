@@ -21,7 +21,7 @@ from shared import keys
 from shared.messages import CorrectionMsg, DecodeError, OptimizeRequest
 from shared.metrics import PROCESSING, REJECTED, UP
 from shared.settings import Settings
-from shared.transport import Bus, open_session
+from shared.transport import Bus, drain, open_session
 
 from .global_ba import BAParams, GlobalParams, optimize_map
 from .metrics import OPTIMIZATIONS, SUPERSEDED
@@ -128,24 +128,17 @@ class OptimizerService:
         self.session = open_session(self.settings.zenoh)
         self.bus = Bus(self.session, SERVICE, self.settings.inject)
         q = self.bus.subscribe(keys.ALL_MAP_OPTIMIZE)
-        self._rx = threading.Thread(target=self._receive, args=(q,), name="optimizer-rx",
-                                    daemon=True)  # fmt: skip
+        self._rx = threading.Thread(
+            target=drain, args=(q, self._stop, lambda it: self.submit(it.key, it.payload),
+                                SERVICE, "optimization request"),
+            name="optimizer-rx", daemon=True,
+        )  # fmt: skip
         self._rx.start()
         self._thread.start()
         # The histogram exists before the first run: rate() over it then counts that run.
         PROCESSING.labels(SERVICE, "optimize")
         UP.labels(SERVICE).set(1)
         log.info("optimizer running")
-
-    def _receive(self, q) -> None:
-        import queue
-
-        while not self._stop.is_set():
-            try:
-                item = q.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            self.submit(item.key, item.payload)
 
     def stop(self) -> None:
         self._stop.set()

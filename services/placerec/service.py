@@ -17,7 +17,7 @@ from shared.geometry import Sim3
 from shared.messages import DecodeError, KeyframeEvent, MapMerged
 from shared.metrics import PROCESSING, REJECTED, UP
 from shared.settings import Settings
-from shared.transport import Bus, Received, open_session
+from shared.transport import Bus, drain, open_session
 
 from .metrics import DB_KEYFRAMES, MATCHES_PUBLISHED, QUERY_SECONDS, VERIFIED
 from .recognizer import PlaceRecognizer, RecognizerParams
@@ -86,16 +86,8 @@ class PlacerecService:
         return matches
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                item: Received = self.q.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                self.handle(item.key, item.payload)
-            except Exception:
-                REJECTED.labels(SERVICE, item.key, "internal").inc()
-                log.exception("place recognition failed", extra={"key": item.key})
+        drain(self.q, self._stop, lambda item: self.handle(item.key, item.payload), SERVICE,
+              "place recognition")  # fmt: skip
 
     def start(self) -> None:
         self.session = open_session(self.settings.zenoh)
