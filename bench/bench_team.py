@@ -35,7 +35,7 @@ from common import table, write_report  # noqa: E402
 from services.team_cli import run_team  # noqa: E402
 from shared import keys  # noqa: E402
 from shared.geometry import Sim3, rotation_angle, se3_inv  # noqa: E402
-from shared.messages import Ack, KeyframeBatch, KeyframeEvent, Match  # noqa: E402
+from shared.messages import Ack, CorrectionMsg, KeyframeBatch, KeyframeEvent, Match  # noqa: E402
 from shared.settings import Settings, ZenohSettings  # noqa: E402
 from shared.trajectory import Trajectory, ate, load_euroc_gt, read_tum  # noqa: E402
 from shared.transport import Bus, open_session  # noqa: E402
@@ -49,7 +49,7 @@ class Recorder:
         self.bus = Bus(self.session, "bench")
         self.q: queue.Queue = queue.Queue()
         for k in (keys.ALL_AGENT_KF, "hivemap/agent/*/down/ack", keys.MATCH, keys.ALL_MAP_KF,
-                  keys.ALL_MAP_OPTIMIZE, keys.ALL_MAP_CORRECTION):  # fmt: skip
+                  keys.ALL_MAP_CORRECTION):  # fmt: skip
             self.bus.subscribe(k, q=self.q)
         self.sent: dict[tuple[str, int], int] = {}  # (agent, kf id) -> first batch seen
         self.acked: dict[tuple[str, int], int] = {}
@@ -82,9 +82,12 @@ class Recorder:
                 elif k.endswith("/kf"):
                     ev = KeyframeEvent.decode(it.payload)
                     self.kf_info[ev.gid] = (ev.agent, ev.kf_id, ev.stamp_ns)
-                elif k.endswith("/optimize"):
-                    self.opt_start.setdefault(keys.map_of(k), []).append(t)
                 elif k.endswith("/correction"):
+                    # Jobs travel through Redis (shared/jobs.py): the correction says
+                    # when its worker started.
+                    c = CorrectionMsg.decode(it.payload)
+                    start = int(c.stats.get("started_ns", t))
+                    self.opt_start.setdefault(keys.map_of(k), []).append(start)
                     self.opt_end.setdefault(keys.map_of(k), []).append(t)
             except Exception as e:  # the bench reports, it does not judge the wire here
                 print(f"recorder: {k}: {e}", file=sys.stderr)
@@ -96,8 +99,8 @@ class Recorder:
         self.session.close()
 
     def busy_intervals(self) -> list[tuple[int, int]]:
-        """When an optimization was running: from a request to the next correction of
-        that map (a request superseded by a newer one runs on until that correction)."""
+        """When an optimization was running: from a worker's start on a job to the
+        next correction of that map (runs abandoned for a newer copy are not seen)."""
         out = []
         for m, starts in self.opt_start.items():
             ends = sorted(self.opt_end.get(m, []))

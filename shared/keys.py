@@ -41,10 +41,6 @@ def map_correction(map_id: str) -> str:
     return f"{ROOT}/map/{check_id(map_id, 'map')}/correction"
 
 
-def map_optimize(map_id: str) -> str:
-    return f"{ROOT}/map/{check_id(map_id, 'map')}/optimize"
-
-
 def map_merged(map_id: str) -> str:
     return f"{ROOT}/map/{check_id(map_id, 'map')}/merged"
 
@@ -65,7 +61,6 @@ ALL_AGENT_KF = f"{ROOT}/agent/*/up/kf"
 ALL_AGENT_POSE = f"{ROOT}/agent/*/up/pose"
 ALL_MAP_KF = f"{ROOT}/map/*/kf"
 ALL_MAP_CORRECTION = f"{ROOT}/map/*/correction"
-ALL_MAP_OPTIMIZE = f"{ROOT}/map/*/optimize"
 ALL_MAP_MERGED = f"{ROOT}/map/*/merged"
 
 

@@ -576,10 +576,11 @@ class Match(_Record):
 
 @dataclass
 class OptimizeRequest(_Record):
-    """Mapper -> optimizer on ``hivemap/map/{map}/optimize``: a copy of the map to
-    optimize (CCM-SLAM: the optimization works on a copy so ingestion goes on). A newer
-    request for the same map supersedes one in progress. The optimizer's algorithms
-    take this message as it is (``services/mapper/capture.py`` builds it).
+    """Mapper -> optimizer pool as a job on the Redis stream of ``shared/jobs.py``: a
+    copy of the map to optimize (CCM-SLAM: the optimization works on a copy so
+    ingestion goes on). A newer request for the same map supersedes one in progress.
+    The optimizer's algorithms take this message as it is (``services/mapper/capture.py``
+    builds it).
 
     Conventions (every 4x4 is float64):
     - ``T_m_kf``: SE(3), camera to map (``p_m = R p_kf + t``).
@@ -672,7 +673,8 @@ class CorrectionMsg(_Record):
     ``S_m_kf = [[s R, t], [0, 1]]`` (1 where none); the corrected SE(3) pose is
     ``[R, t]``. A length measured in the keyframe's camera frame before the correction
     is ``s`` times as long in the corrected map. ``stats``: numbers, strings and
-    lists/maps of them, for logs."""
+    lists/maps of them, for logs. ``job``: the optimization job it answers
+    (``shared/jobs.py``); a job's correction is applied once."""
 
     SCHEMA: ClassVar[str] = "hivemap.correction/1"
     FIELDS: ClassVar[dict[str, Any]] = {
@@ -681,8 +683,9 @@ class CorrectionMsg(_Record):
         "kf_scale": ("<f8", ("kf_gids",)),
         "mp_gids": ("<i8", (None,)), "mp_pos": ("<f8", ("mp_gids", 3)),
         "outlier_kf": ("<i8", (None,)), "outlier_mp": ("<i8", ("outlier_kf",)),
-        "stats": "dict",
+        "stats": "dict", "job": "str",
     }  # fmt: skip
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("job",)
     map_id: str
     base_version: int
     sent_ns: int
@@ -694,6 +697,7 @@ class CorrectionMsg(_Record):
     outlier_kf: np.ndarray  # observations the optimization found to be outliers:
     outlier_mp: np.ndarray  # (keyframe gid, map-point gid) pairs
     stats: dict
+    job: str | None = None
 
     @property
     def outliers(self) -> np.ndarray:

@@ -93,6 +93,11 @@ class OptimizerSettings(BaseModel):
     # row; then the run finishes (and the newest copy runs next), so a stream of loops
     # can't starve the map of corrections.
     max_restarts: int = Field(2, ge=0)
+    # The pool (shared/jobs.py): a job its worker has not renewed for this long (the
+    # worker renews every quarter of it while alive) is taken over by another worker,
+    # at most max_deliveries times in all.
+    claim_idle_s: float = Field(20.0, gt=0)
+    max_deliveries: int = Field(3, ge=1)
     # As for place recognition: a global BA may take seconds of CPU, ingestion can't.
     nice: int = Field(10, ge=0, le=19)
 

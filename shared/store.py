@@ -37,6 +37,9 @@ matrices little-endian float64 row-major):
                                    frame into q's (the pose graph's loop edges)
     hm:poses                 PUBSUB channel of live poses (msgpack LivePose), for the
                                    API's WebSocket
+    hm:opt:*                 the optimization job queue the optimizer pool reads (a
+                                   stream with a consumer group): its keys are laid out
+                                   in ``shared/jobs.py``, beside the protocol that uses them
 
 A batch of keyframes and map points goes in one MULTI/EXEC transaction (the writers
 take the caller's ``pipeline()``), so a mapper killed mid-write leaves either all of it

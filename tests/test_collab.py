@@ -15,7 +15,7 @@ from services.mapper.service import MapperService
 from services.optimizer.service import OptimizerService, Superseded
 from shared.geometry import Sim3, exp_so3, se3_inv
 from shared.ids import gid, local_id_of
-from shared.messages import Ack, Match, OptimizeRequest
+from shared.messages import Ack, CorrectionMsg, Match, OptimizeRequest
 from shared.settings import Settings
 from shared.store import Store, connect
 from shared.trajectory import Trajectory, load_euroc_gt
@@ -187,18 +187,24 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     assert svc.collab.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
     map_id = svc.handlers["A"].map_id
     before = _joint_rigid_error(svc, gts, "AB")
-    req = svc.collab.request(map_id, "merge")
-    assert isinstance(req, OptimizeRequest) and len(req.loops) == 1
-    req = OptimizeRequest.decode(req.encode())  # what travels on the wire
+    sent = svc.collab.request(map_id, "merge")
+    assert isinstance(sent, OptimizeRequest) and len(sent.loops) == 1
     opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    job = opt.queue.take(block_s=0.1)  # the request went to the job stream
+    assert job is not None and job.map_id == map_id
+    req = opt.decode(job)  # what travels through Redis
+    assert req is not None and req.version == sent.version and len(req.loops) == 1
     # A newer copy of the same map waiting: the run stops at a stage boundary...
-    opt._pending[map_id] = req
+    svc.collab.jobs.submit(map_id, job.data)
     with pytest.raises(Superseded):
-        opt.optimize(req)
+        opt.optimize(req, job)
     # ...but not forever: after max_restarts in a row it finishes.
-    opt._restarts[map_id] = settings.optimizer.max_restarts
-    corr = opt.optimize(req)
-    opt._pending.clear()
+    for _ in range(settings.optimizer.max_restarts):
+        opt.queue.restarted(map_id)
+    corr = opt.optimize(req, job)
+    assert corr.job == job.id
+    corr = CorrectionMsg.decode(corr.encode())
     # A keyframe that arrived during the optimization is carried along (CCM-SLAM Fig. 4).
     gt = load_euroc_gt("MH01")
     more = Trajectory(gt.stamps_ns[700:760], gt.poses[700:760])
@@ -207,6 +213,8 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
                                 np.concatenate([sims["A"].traj.poses, more.poses]))  # fmt: skip
     _feed(svc, "A", sims["A"])
     assert svc.collab.on_correction(corr) is True
+    # The same job's correction again (a second worker ran it): applied once.
+    assert svc.collab.on_correction(corr) is False
     smap = svc.maps[map_id]
     assert smap.check_invariants() == []
     after = _joint_rigid_error(svc, gts, "AB")

@@ -18,6 +18,7 @@ from services.optimizer.service import OptimizerService
 from services.placerec.service import PlacerecService
 from shared import keys
 from shared.evaluation import evaluate_team
+from shared.jobs import K_JOBS, JobQueue
 from shared.messages import packb
 from shared.metrics import sample_value
 from shared.store import Store, connect
@@ -63,15 +64,19 @@ def test_two_agents_meet_merge_and_get_optimized(settings, services, world):
     targets = [
         ("mapper", keys.MATCH), ("mapper", keys.map_correction("map-X")),
         ("placerec", keys.map_kf("map-X")), ("placerec", keys.map_merged("map-X")),
-        ("optimizer", keys.map_optimize("map-X")),
+        ("optimizer", K_JOBS),
     ]  # fmt: skip
     before = {t: _rejected(*t) for t in targets}
     with open_session(settings.zenoh) as session:
         bus = Bus(session, "test")
         time.sleep(0.5)  # subscribers of the services are declared; routes settle
+        jobs = JobQueue(connect(settings.redis_url))
         for _, key in targets:
             for g in GARBAGE:
-                bus.put(key, g)
+                if key == K_JOBS:  # optimization jobs come through Redis
+                    jobs.submit("map-X", g)
+                else:
+                    bus.put(key, g)
         assert _wait(lambda: all(_rejected(*t) - before[t] >= len(GARBAGE) for t in targets),
                      15), {t: _rejected(*t) - before[t] for t in targets}  # fmt: skip
         bus.close()

@@ -1,5 +1,7 @@
 """The mapper's side of collaboration: keyframe events out to place recognition,
-verified matches in (map fusion or loop), optimization requests out, corrections in.
+verified matches in (map fusion or loop), optimization requests out (a job on the
+Redis stream the optimizer pool reads, ``shared/jobs.py``), corrections in -- each job's
+correction applied once, however many workers ran it.
 
 The mapper owns every map, so it applies merges, loop edges and corrections itself,
 under the map actors' locks; the optimizer only ever works on a copy (CCM-SLAM §4.9).
@@ -37,6 +39,7 @@ import numpy as np
 from shared import keys
 from shared.camera import EUROC_FX
 from shared.geometry import Sim3
+from shared.jobs import JobQueue
 from shared.messages import (
     CorrectionMsg,
     DecodeError,
@@ -81,6 +84,7 @@ class Collaboration:
         self, svc: MapperService, optimize_min_interval_s: float = 3.0, opt_share: float = 0.1
     ) -> None:
         self.svc = svc
+        self.jobs = JobQueue(svc.store.r)
         self.loops: dict[str, list[LoopConstraint]] = {}
         self.merged_into: dict[str, str] = {}
         self.min_interval = optimize_min_interval_s
@@ -385,15 +389,14 @@ class Collaboration:
             )
         data = req.encode()
         t3 = time.perf_counter()
-        if svc.bus is not None:
-            svc.bus.put(keys.map_optimize(map_id), data)
+        job = self.jobs.submit(map_id, data)
         t4 = time.perf_counter()
         with self._lock:
             self._copy_s[map_id] = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
-        log.info("optimization requested for %s (%s): %d keyframes, %d loops, %.1f MB; "
-                 "capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
-                 map_id, reason, len(req.kf_gids), len(req.loops), len(data) / 1e6,
+        log.info("optimization requested for %s (%s, job %s): %d keyframes, %d loops, "
+                 "%.1f MB; capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
+                 map_id, reason, job, len(req.kf_gids), len(req.loops), len(data) / 1e6,
                  1e3 * (t1 - t0), 1e3 * (t2 - t1), 1e3 * (t3 - t2), 1e3 * (t4 - t3))  # fmt: skip
         return req
 
@@ -412,6 +415,12 @@ class Collaboration:
         if smap is None:
             # The map was merged away meanwhile: a request for the merged map follows.
             REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
+            return False
+        if c.job is not None and not self.jobs.mark_applied(c.job):
+            # The job ran twice (its first worker died after publishing, or was paused
+            # past its claim): the first correction is in the map already.
+            REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "duplicate").inc()
+            log.info("correction of job %s for %s already applied", c.job, c.map_id)
             return False
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)

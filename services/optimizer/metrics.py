@@ -11,7 +11,16 @@ SUPERSEDED = Counter(
     "hivemap_optimizations_superseded_total",
     "Optimization requests replaced by a newer copy of the same map before finishing",
 )
+# Per process, so per worker of the pool: Prometheus's instance label tells them apart.
+JOBS = Counter(
+    "hivemap_optimizer_jobs_total",
+    "Optimization jobs this worker took (taken: new, claimed: left by a worker that "
+    "stopped) and how they ended (done, superseded, invalid, failed)",
+    ["outcome"],
+)
 
 # Known reasons (the mapper's OptimizeRequest.reason) exist from the start, at 0.
 for _reason in ("merge", "loop", "continue"):
     OPTIMIZATIONS.labels(_reason)
+for _outcome in ("taken", "claimed", "done", "superseded", "invalid", "failed"):
+    JOBS.labels(_outcome)

@@ -1,0 +1,171 @@
+"""Optimizers as a pool (shared/jobs.py): two ``hivemap optimizer`` processes share the
+job stream; one killed with ``kill -9`` mid-job leaves the job to the other, one paused
+past its claim and resumed runs it a second time, and either way the mapper applies the
+job's correction once."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.agent.comm import CommModule
+from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.mapper.service import MapperService
+from shared.jobs import K_JOBS, JobQueue
+from shared.messages import Ack
+from shared.metrics import sample_value
+from shared.settings import Settings
+from shared.store import connect
+from shared.trajectory import Trajectory, load_euroc_gt
+
+HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
+CLAIM_IDLE_S = 2.0
+
+
+def _feed(svc: MapperService, agent: str, sim: SimAgent) -> None:
+    comm = CommModule(agent, rate_hz=1e9)
+    t = 0.0
+    while not sim.done:
+        _, _, kf = sim.step()
+        if kf is None:
+            continue
+        comm.add_keyframe(kf.kf)
+        comm.add_map_points(kf.new_mps)
+        data = comm.next_message(t, 0, kf.kf.id).encode()
+        ack = svc.process_kf_bytes(f"hivemap/agent/{agent}/up/kf", data, 0)
+        comm.on_ack(Ack(agent, ack.map_id, ack.kf_ids, ack.mp_ids, 0, 0), t)
+        t += 1.0
+
+
+def _wait(cond, timeout: float, step: float = 0.02):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = cond()
+        if v:
+            return v
+        time.sleep(step)
+    return None
+
+
+class Worker:
+    def __init__(self, settings: Settings, tmp: Path, name: str) -> None:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
+        env.update({
+            "HIVEMAP_REDIS_URL": settings.redis_url,
+            "HIVEMAP_ZENOH__CONNECT": f'["{settings.zenoh.connect[0]}"]',
+            "HIVEMAP_OPTIMIZER__CLAIM_IDLE_S": str(CLAIM_IDLE_S),
+            # Long enough a run that the test catches it mid-job.
+            "HIVEMAP_OPTIMIZER__BA_MAX_ITERATIONS": "200",
+            "HIVEMAP_OPTIMIZER__BA_TIME_BUDGET_S": "3",
+            "HIVEMAP_OPTIMIZER__NICE": "0",
+            "HIVEMAP_LOG_JSON": "false",
+        })  # fmt: skip
+        self.log = tmp / f"{name}.log"
+        self._err = open(self.log, "w")  # noqa: SIM115
+        self.proc = subprocess.Popen([HIVEMAP, "optimizer"], env=env,
+                                     stdout=self._err, stderr=subprocess.STDOUT)  # fmt: skip
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGCONT)
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._err.close()
+
+
+def _consumers(r) -> dict[int, str]:
+    """pid -> consumer name of every live worker (names are host-pid-random)."""
+    return {int(n.split("-")[-2]): n for n in JobQueue(r).workers(within_s=CLAIM_IDLE_S / 2)}
+
+
+def _applied() -> float:
+    return sample_value("hivemap_corrections_applied_total", {})
+
+
+def _duplicates(map_id: str) -> float:
+    return sample_value("hivemap_messages_rejected_total",
+                        {"service": "mapper", "key": f"hivemap/map/{map_id}/correction",
+                         "reason": "duplicate"})  # fmt: skip
+
+
+@pytest.fixture()
+def stack(settings, tmp_path):
+    """A map of one simulated agent stored in Redis, a mapper serving it, two workers."""
+    gt = load_euroc_gt("MH01")
+    sim = SimAgent(Trajectory(gt.stamps_ns[:600], gt.poses[:600]), LandmarkWorld(0),
+                   drift=DriftModel(), seed=3)  # fmt: skip
+    _feed(MapperService(settings), "A", sim)
+    mapper = MapperService(settings)
+    mapper.start()  # rebuilds the map from Redis, takes corrections over Zenoh
+    workers = [Worker(settings, tmp_path, f"opt{i}") for i in range(2)]
+    r = connect(settings.redis_url)
+    try:
+        assert _wait(lambda: len(_consumers(r)) == 2, 60), \
+            [w.log.read_text()[-1500:] for w in workers]  # fmt: skip
+        yield mapper, workers, r, tmp_path
+    finally:
+        for w in workers:
+            w.close()
+        mapper.stop()
+        r.close()
+
+
+def _holder(r, workers: list[Worker], taken_before: int) -> Worker:
+    """The worker that holds the one pending job and has started on it."""
+    q = JobQueue(r)
+    pend = _wait(lambda: sum(q.taken().values()) > taken_before and q.pending(), 30)
+    assert pend, "no worker took the job"
+    ((_, consumer),) = pend
+    pid = next(p for p, n in _consumers(r).items() if n == consumer)
+    return next(w for w in workers if w.proc.pid == pid)
+
+
+def test_a_killed_worker_leaves_its_job_to_another_and_it_is_applied_once(settings, stack):
+    mapper, workers, r, tmp = stack
+    (map_id,) = mapper.maps
+    q = JobQueue(r)
+    applied0, dup0 = _applied(), _duplicates(map_id)
+
+    # 1. kill -9 mid-job: the other worker claims it once it has been idle CLAIM_IDLE_S.
+    assert mapper.collab.request(map_id, "loop") is not None
+    victim = _holder(r, workers, 0)
+    (survivor,) = [w for w in workers if w is not victim]
+    os.kill(victim.proc.pid, signal.SIGKILL)
+    t_kill = time.monotonic()
+    victim.proc.wait(10)
+    assert _applied() == applied0, "the killed worker had finished already"
+    names = _consumers(r)
+    assert _wait(lambda: q.taken().get(names[survivor.proc.pid], 0) >= 1, 4 * CLAIM_IDLE_S)
+    takeover_s = time.monotonic() - t_kill
+    assert takeover_s < 2 * CLAIM_IDLE_S + 1.0, takeover_s
+    assert _wait(lambda: _applied() == applied0 + 1, 60), survivor.log.read_text()[-2000:]
+    assert _wait(lambda: not q.pending() and r.xlen(K_JOBS) == 0, 10)
+    assert "from a worker that stopped; delivery 2" in survivor.log.read_text()
+    print(f"takeover after kill -9: {takeover_s:.2f} s (claim idle {CLAIM_IDLE_S} s)")
+
+    # 2. A worker paused past its claim and resumed runs the job a second time; the
+    # mapper applies the job's correction once.
+    workers.append(Worker(settings, tmp, "opt2"))
+    assert _wait(lambda: len(_consumers(r)) == 2 and victim.proc.pid not in _consumers(r), 60)
+    assert mapper.collab.request(map_id, "loop") is not None
+    paused = _holder(r, [w for w in workers if w.proc.poll() is None], 2)
+    os.kill(paused.proc.pid, signal.SIGSTOP)
+    assert _wait(lambda: _applied() == applied0 + 2, 60), "no other worker ran the job"
+    os.kill(paused.proc.pid, signal.SIGCONT)
+    assert _wait(lambda: _duplicates(map_id) == dup0 + 1, 60), paused.log.read_text()[-2000:]
+    time.sleep(1.0)
+    assert _applied() == applied0 + 2
+    assert "taken over by another worker meanwhile" in paused.log.read_text()
+    taken = q.taken()
+    print("jobs taken per worker:", taken)
+    assert sum(taken.values()) == 4  # two jobs, each taken twice
