@@ -12,14 +12,18 @@ and correction, so the report can say:
 - keyframe latency (batch on the wire -> its ack on the wire) of keyframes that
   arrived while an optimization was running, and of all others.
 
-    .venv/bin/python bench/bench_team.py [--only team3,team5,seeds,feedback] [--frames A:B]
-        [--name team]    (feedback = feedback_on + feedback_off; each can run alone)
+    .venv/bin/python bench/bench_team.py [--only team3,team5,seeds,feedback,team2_seed1]
+        [--frames A:B] [--name team] [--camera 'blur=0.5&exposure=1']
+        [--drop 0.5] [--delay 1 --jitter 0.5]
+    (feedback = feedback_on + feedback_off; each can run alone; the last table: each
+    agent's reported vs raw VO ATE and the reported jumps the VO does not have)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import queue
 import sys
 import tempfile
@@ -30,6 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
+from bench_flight import flight_metrics  # noqa: E402
 from common import table, write_report  # noqa: E402
 
 from services.team_cli import run_team  # noqa: E402
@@ -151,10 +156,15 @@ def _gt_at(gt: Trajectory, stamp: int) -> np.ndarray:
     return gt.poses[i]
 
 
-def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) -> dict:
+def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
+         camera: str = "") -> dict:  # fmt: skip
     sources = []
     for i, (seq, seed) in enumerate(zip(seqs, seeds, strict=True)):
-        q = [f"seed={seed}"] + ([f"frames={frames}"] if frames else [])
+        q = (
+            [f"seed={seed}"]
+            + ([f"frames={frames}"] if frames else [])
+            + ([camera] if camera else [])
+        )
         sources.append((f"agent{i + 1}", seq, f"synthetic:{seq}?{'&'.join(q)}"))
     out = Path(tempfile.mkdtemp(prefix="hivemap-team-"))
     holder: dict = {}
@@ -174,13 +184,17 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) 
     during, other = rec.latencies()
     # The agents' per-frame poses as they reported them in flight (the VO's through the
     # server's frame correction) and their VO's own (CCM-SLAM Table 7).
-    online, vo = {}, {}
+    online, vo, flight = {}, {}, {}
     for name, _, _ in sources:
         gt = read_tum(out / f"{name}_gt.tum")
         for d, kind in ((online, "online"), (vo, "vo")):
             f = out / f"{name}_{kind}.tum"
             if f.exists():
                 d[name] = ate(read_tum(f), gt).rmse
+        if name in online and name in vo:
+            # Jumps of the reported pose that the VO does not have (issue 17 item 1).
+            flight[name] = flight_metrics(read_tum(out / f"{name}_online.tum"),
+                                          read_tum(out / f"{name}_vo.tum"), gt)  # fmt: skip
     doc.pop("stack", None)
     judged = [m for m in matches if m["correct"] is not None]
     return {
@@ -191,10 +205,12 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True) 
         "optimizations": sum(len(v) for v in rec.opt_end.values()),
         "kf_latency_during_opt_ms": _pcts(during), "kf_latency_other_ms": _pcts(other),
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
-        "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())),
+        "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())), "flight": flight,
+        "camera": camera, "inject": {k: v for k, v in os.environ.items()
+                                     if k.startswith("HIVEMAP_INJECT__")}, "out": str(out),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
                             ("keyframes", "track_ms_median", "track_ms_p95", "longest_lost_s",
-                         "chunks", "corrections", "foreign_points")}
+                         "chunks", "corrections", "corrections_held", "foreign_points")}
                         for a, v in doc["agents"].items()},
     }  # fmt: skip
 
@@ -211,13 +227,26 @@ def main() -> int:
     ap.add_argument("--only", default="team3,team5,seeds,feedback")
     ap.add_argument("--frames", default="")
     ap.add_argument("--name", default="team")
+    ap.add_argument("--camera", default="", help="synthetic: options, e.g. blur=0.5&exposure=1")
+    ap.add_argument("--drop", type=float, default=0.0, help="loss on the agents' messages")
+    ap.add_argument("--delay", type=float, default=0.0, help="delay (s) on the agents' messages")
+    ap.add_argument("--jitter", type=float, default=0.0)
     args = ap.parse_args()
+    # The communication controller (CCM-SLAM §5.3) in every agent: bad links.
+    for k, v in (("DROP", args.drop), ("DELAY_S", args.delay), ("JITTER_S", args.jitter)):
+        if v:
+            os.environ[f"HIVEMAP_INJECT__{k}"] = str(v)
+    cam = args.camera
     runs: dict = {}
     only = args.only.split(",")
     if "team3" in only:
-        runs["team3"] = team(["MH01", "MH02", "MH03"], [0, 0, 0], args.frames)
+        runs["team3"] = team(["MH01", "MH02", "MH03"], [0, 0, 0], args.frames, camera=cam)
     if "team5" in only:
-        runs["team5"] = team(["MH01", "MH02", "MH03", "MH04", "MH05"], [0] * 5, args.frames)
+        runs["team5"] = team(["MH01", "MH02", "MH03", "MH04", "MH05"], [0] * 5, args.frames,
+                             camera=cam)  # fmt: skip
+    if "team2_seed1" in only:
+        # Another world: two agents in the world of seed 1.
+        runs["team2_seed1"] = team(["MH01", "MH02"], [1, 1], args.frames, camera=cam)
     if "seeds" in only:
         # The same flights in two different worlds: nothing may match across them.
         runs["seeds"] = team(["MH01", "MH02"], [0, 1], args.frames)
@@ -246,6 +275,15 @@ def main() -> int:
            for n, r in runs.items() for m in r["eval"] for e in m["per_agent"]]  # fmt: skip
     if per:
         print(table(per, list(per[0])))
+    fl = [{"run": n, "agent": a, "online_ate_m": r["online_ate_m"].get(a),
+           "vo_ate_m": r["vo_ate_m"].get(a), "jumps_5cm": m["jumps_5cm"],
+           "jumps_10cm": m["jumps_10cm"], "max_own_jump_5cm_m": m["max_own_jump_5cm_m"],
+           "max_jump_m": m["max_jump_m"],
+           "longest_lost_s": r["agent_stats"].get(a, {}).get("longest_lost_s"),
+           "held": r["agent_stats"].get(a, {}).get("corrections_held")}
+          for n, r in runs.items() for a, m in r.get("flight", {}).items()]  # fmt: skip
+    if fl:
+        print(table(fl, list(fl[0])))
     print(f"written {path}")
     print(json.dumps({n: r["n_maps"] for n, r in runs.items()}))
     return 0
