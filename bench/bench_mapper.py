@@ -67,7 +67,7 @@ def _plan_without(names: tuple[str, ...]):
     """Start the stack without the named services (item 2 measures the mapper; place
     recognition and optimization are separate, horizontally scaled services)."""
     orig = launcher.service_plan
-    launcher.service_plan = lambda s: [x for x in orig(s) if x.name not in names]
+    launcher.service_plan = lambda s, scale=None: [x for x in orig(s, scale) if x.name not in names]
     try:
         yield
     finally:

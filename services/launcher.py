@@ -38,36 +38,60 @@ class ServiceSpec:
     http_port: int | None = None
 
 
-def service_plan(settings: Settings) -> list[ServiceSpec]:
+@dataclass(frozen=True)
+class Scale:
+    """Instances of each scalable service (``hivemap up --mappers N --placerecs M
+    --optimizers K``; compose's ``--scale``, the Deployments' ``replicas``)."""
+
+    mappers: int = 1
+    placerecs: int = 1
+    optimizers: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("mappers", "placerecs", "optimizers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name} must be at least 1")
+        if self.mappers > 1:
+            # Two mappers today would both take every agent's keyframes and write the
+            # same maps: several need map ownership (leases with fencing, issue 20),
+            # which the mapper does not have yet.
+            raise ValueError("--mappers > 1 needs map ownership leases, not built yet; "
+                             "placerecs and optimizers scale now")  # fmt: skip
+
+
+# Instance i (from 0) of a service listens for metrics on its base port + 10 i: the
+# bases are consecutive (mapper 9101, placerec 9102, optimizer 9103), so the second
+# instances get 9111, 9112, 9113 and no two collide up to ten instances each.
+PORT_STRIDE = 10
+
+
+def service_plan(settings: Settings, scale: Scale | None = None) -> list[ServiceSpec]:
     """Every process of the stack, in start order. ``router`` and ``redis`` are the
-    infrastructure (zenohd and redis images in compose); the rest are hivemap services."""
+    infrastructure (zenohd and redis images in compose); the rest are hivemap services.
+    A service with one instance has its plain name; several are ``name-1``, ``name-2``."""
+    scale = scale or Scale()
     router_ep = settings.zenoh.connect[0] if settings.zenoh.connect else DEFAULT_ROUTER
     common = {
         "HIVEMAP_ZENOH__MODE": "client",
         "HIVEMAP_ZENOH__CONNECT": json.dumps([router_ep]),
         "HIVEMAP_REDIS_URL": settings.redis_url,
     }
-    return [
+    plan = [
         ServiceSpec("router", ["hivemap", "router", "--listen", router_ep]),
         ServiceSpec("redis", ["redis-server"]),
-        ServiceSpec(
-            "mapper",
-            ["hivemap", "mapper"],
-            {**common, "HIVEMAP_METRICS_PORT": str(settings.mapper_metrics_port)},
-            settings.mapper_metrics_port,
-        ),
-        ServiceSpec(
-            "placerec",
-            ["hivemap", "placerec"],
-            {**common, "HIVEMAP_METRICS_PORT": str(settings.placerec_metrics_port)},
-            settings.placerec_metrics_port,
-        ),
-        ServiceSpec(
-            "optimizer",
-            ["hivemap", "optimizer"],
-            {**common, "HIVEMAP_METRICS_PORT": str(settings.optimizer_metrics_port)},
-            settings.optimizer_metrics_port,
-        ),
+    ]
+    for name, n, base in (
+        ("mapper", scale.mappers, settings.mapper_metrics_port),
+        ("placerec", scale.placerecs, settings.placerec_metrics_port),
+        ("optimizer", scale.optimizers, settings.optimizer_metrics_port),
+    ):
+        for i in range(n):
+            port = base + PORT_STRIDE * i
+            plan.append(ServiceSpec(
+                name if n == 1 else f"{name}-{i + 1}", ["hivemap", name],
+                {**common, "HIVEMAP_METRICS_PORT": str(port)}, port,
+            ))  # fmt: skip
+    plan.append(
         ServiceSpec(
             "api",
             ["hivemap", "api"],
@@ -77,8 +101,9 @@ def service_plan(settings: Settings) -> list[ServiceSpec]:
                 "HIVEMAP_API_HOST": settings.api_host,
             },
             settings.api_port,
-        ),  # fmt: skip
-    ]
+        )
+    )
+    return plan
 
 
 def _hivemap_exe() -> list[str]:
@@ -173,8 +198,10 @@ class Stack:
         data_dir: str | None = None,
         env: dict[str, str] | None = None,
         listen: str | None = None,
+        scale: Scale | None = None,
     ) -> None:
         self.settings = settings
+        self.scale = scale or Scale()
         self.data_dir = data_dir
         self.env = dict(env or {})  # extra HIVEMAP_* variables for every service
         self.listen = listen
@@ -210,7 +237,7 @@ class Stack:
             update={"redis_url": redis_url,
                     "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]})}
         )  # fmt: skip
-        for spec in service_plan(self.settings):
+        for spec in service_plan(self.settings, self.scale):
             if spec.name == "redis" or (spec.name == "api" and not with_api):
                 continue
             argv = _hivemap_exe() + spec.argv[1:]
@@ -383,9 +410,9 @@ def _print_urls(stack: Stack) -> None:
     print(f"zenoh router : {stack.zenoh_endpoint}")
     print(f"redis        : {s.redis_url}")
     print(f"api          : http://{s.api_host}:{s.api_port}/  (viewer), /agents, /docs")
-    print(f"mapper       : http://127.0.0.1:{s.mapper_metrics_port}/metrics")
-    print(f"placerec     : http://127.0.0.1:{s.placerec_metrics_port}/metrics")
-    print(f"optimizer    : http://127.0.0.1:{s.optimizer_metrics_port}/metrics")
+    for spec in service_plan(s, stack.scale):
+        if spec.name not in ("router", "redis", "api"):
+            print(f"{spec.name:<13}: http://127.0.0.1:{spec.http_port}/metrics")
     print("Ctrl-C stops everything.", flush=True)
 
 
@@ -405,7 +432,12 @@ def _start_or_explain(stack: Stack) -> bool:
 def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
     stop = _stop_on_signal()
     data_dir = None if args.ephemeral else str(Path(args.data_dir).resolve())
-    stack = Stack(settings, data_dir=data_dir, listen=args.listen)
+    try:
+        scale = Scale(args.mappers, args.placerecs, args.optimizers)
+    except ValueError as e:
+        print(f"hivemap: {e}", file=sys.stderr)
+        return 2
+    stack = Stack(settings, data_dir=data_dir, listen=args.listen, scale=scale)
     if not _start_or_explain(stack):
         return 2
     _print_urls(stack)
@@ -454,6 +486,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the next `hivemap up` with the same directory serves them again "
                    f"(default ./{DEFAULT_DATA_DIR})")  # fmt: skip
     p.add_argument("--ephemeral", action="store_true", help="keep no data (overrides --data-dir)")
+    p.add_argument("--mappers", type=int, default=1, help="mapper instances (default 1)")
+    p.add_argument("--placerecs", type=int, default=1,
+                   help="place-recognition instances sharing the work (default 1)")  # fmt: skip
+    p.add_argument("--optimizers", type=int, default=1,
+                   help="optimizer instances taking jobs from one queue (default 1)")  # fmt: skip
     _add_listen(p)
     p.set_defaults(func=cmd_up)
 

@@ -10,7 +10,7 @@ import time
 import urllib.request
 from collections.abc import Iterator
 
-from services.launcher import Stack
+from services.launcher import Scale, Stack
 from shared.redis_server import free_port
 from shared.settings import Settings
 
@@ -48,10 +48,12 @@ def live_stack(
     speed: float = 2.0,
     agent_prefix: str = "agent",
     env: dict[str, str] | None = None,
+    scale: Scale | None = None,
 ) -> Iterator[Stack]:
     """The stack with ``n_agents`` simulated agents in one process (ids
     ``{agent_prefix}-0..``), agents started once the API answers."""
-    stack = Stack(stack_settings(), env={"HIVEMAP_LOG_LEVEL": "WARNING", **(env or {})})
+    stack = Stack(stack_settings(), env={"HIVEMAP_LOG_LEVEL": "WARNING", **(env or {})},
+                  scale=scale)  # fmt: skip
     try:
         stack.start()
         stack.add(

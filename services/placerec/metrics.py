@@ -15,10 +15,20 @@ VERIFIED = Counter(
 MATCHES_PUBLISHED = Counter(
     "hivemap_placerec_matches_total", "Verified matches published", ["kind"]
 )
+# Per process, so per member of a placerec pool: every member stores every keyframe,
+# the map's owner alone queries and verifies it.
+KEYFRAMES = Counter(
+    "hivemap_placerec_keyframes_total",
+    "Keyframe events taken in (stored: added to the database only; queried: also "
+    "searched for a match, by the member of the pool that owns the map)",
+    ["role"],
+)
 DB_KEYFRAMES = Gauge("hivemap_placerec_db_keyframes", "Keyframes in the place database")
 
 # Known label values exist from the start, at 0.
 for _result in ("accepted", "rejected"):
     VERIFIED.labels(_result)
+for _role in ("stored", "queried"):
+    KEYFRAMES.labels(_role)
 for _kind in ("merge", "loop"):
     MATCHES_PUBLISHED.labels(_kind)

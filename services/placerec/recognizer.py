@@ -152,7 +152,10 @@ class PlaceRecognizer:
         return MapPoints(mp[first], np.concatenate(pts)[first], np.concatenate(desc)[first])
 
     # --- one keyframe -------------------------------------------------------------------
-    def process(self, ev: KeyframeEvent) -> list[Match]:
+    def process(self, ev: KeyframeEvent, query: bool = True) -> list[Match]:
+        """Adds ``ev``'s keyframe to the database and, when ``query``, looks for and
+        verifies a match for it (one member of a placerec pool queries each map's
+        keyframes; every member stores them all)."""
         t0 = time.perf_counter()
         timing = QueryTiming()
         map_id = self.resolve(ev.map_id)
@@ -162,7 +165,9 @@ class PlaceRecognizer:
         neighbours = [int(n) for n in ev.covis.tolist() if int(n) in self.kfs]
         resting = self.rest.get(ev.agent, 0) > 0
         queries = []
-        if not resting and len(self.kfs) > 0:
+        if not query:
+            pass
+        elif not resting and len(self.kfs) > 0:
             others = [m for m in self.db.maps() if m != map_id]
             if others:
                 cands = self.db.query(kd.bow, neighbours, self.covisible, query_gid=g,
