@@ -40,6 +40,8 @@ matrices little-endian float64 row-major):
     hm:opt:*                 the optimization job queue the optimizer pool reads (a
                                    stream with a consumer group): its keys are laid out
                                    in ``shared/jobs.py``, beside the protocol that uses them
+    hm:lease:{m}, hm:fence:{m}  map ownership leases and fencing tokens: laid out in
+                                   ``shared/leases.py``, beside the scripts that use them
 
 A batch of keyframes and map points goes in one MULTI/EXEC transaction (the writers
 take the caller's ``pipeline()``), so a mapper killed mid-write leaves either all of it
