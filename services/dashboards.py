@@ -30,6 +30,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from services.mapper.agent_health import DISCONNECTED_AFTER_S
+
 DATASOURCE_UID = "hivemap-prometheus"  # deploy/grafana/provisioning/datasources/prometheus.yml
 # The scrape jobs of deploy/prometheus/prometheus.yml: one per hivemap service.
 JOBS = 'job=~"mapper|placerec|optimizer|api"'
@@ -57,6 +59,7 @@ def _sdk():
         from grafana_foundation_sdk.builders import dashboard as dash_b
         from grafana_foundation_sdk.builders import prometheus as prom_b
         from grafana_foundation_sdk.builders import stat as stat_b
+        from grafana_foundation_sdk.builders import statetimeline as stl_b
         from grafana_foundation_sdk.builders import timeseries as ts_b
         from grafana_foundation_sdk.cog.encoder import JSONEncoder
         from grafana_foundation_sdk.models import common as common_m
@@ -65,15 +68,15 @@ def _sdk():
         raise SystemExit(
             "hivemap dashboards needs grafana-foundation-sdk: pip install -e '.[dev]'"
         ) from e
-    return dash_b, ts_b, stat_b, prom_b, common_b, common_m, dash_m, JSONEncoder
+    return dash_b, ts_b, stat_b, stl_b, prom_b, common_b, common_m, dash_m, JSONEncoder
 
 
 class _Builder:
     """Panels laid out in rows; ids are given in order so regeneration is stable."""
 
     def __init__(self, uid: str, title: str, description: str, tags: list[str]) -> None:
-        (self.dash_b, self.ts_b, self.stat_b, self.prom_b, self.common_b, self.common_m,
-         self.dash_m, self.encoder) = _sdk()  # fmt: skip
+        (self.dash_b, self.ts_b, self.stat_b, self.stl_b, self.prom_b, self.common_b,
+         self.common_m, self.dash_m, self.encoder) = _sdk()  # fmt: skip
         self.ds = self.dash_m.DataSourceRef(type_val="prometheus", uid=DATASOURCE_UID)
         self.next_id = 1
         self.d = (
@@ -189,6 +192,44 @@ class _Builder:
             p = p.with_target(t)
         self.d = self.d.with_panel(p)
 
+    def state_timeline(
+        self,
+        title: str,
+        description: str,
+        query: Q,
+        states: list[tuple[int, str, str]],
+        *,
+        w: int = 24,
+        h: int = 8,
+    ) -> None:
+        """One row per series, coloured by ``states``: (value, text, colour)."""
+        mapping = self.dash_m.ValueMap(
+            options={
+                str(v): self.dash_m.ValueMappingResult(text=t, color=c, index=i)
+                for i, (v, t, c) in enumerate(states)
+            }  # fmt: skip
+        )
+        p = (
+            self.stl_b.Panel()
+            .id(self._id())
+            .title(title)
+            .description(description)
+            .datasource(self.ds)
+            .unit("none")
+            .height(h)
+            .span(w)
+            .mappings([mapping])
+            .show_value(self.common_m.VisibilityMode.NEVER)
+            .merge_values(True)
+            .fill_opacity(80)
+            .line_width(0)
+            .thresholds(self._thresholds([(None, "text")]))
+            .color_scheme(self.dash_b.FieldColor().mode(self.dash_m.FieldColorModeId.THRESHOLDS))
+        )
+        for t in self._targets([query]):
+            p = p.with_target(t)
+        self.d = self.d.with_panel(p)
+
     def agent_variable(self, metric: str) -> None:
         v = (
             self.dash_b.QueryVariable("agent")
@@ -262,6 +303,16 @@ def team_dashboard() -> dict:
     b.stat("Keyframes", "Keyframes in all server maps (after redundant-keyframe culling).",
            Q("sum(hivemap_map_keyframes)"))  # fmt: skip
     b.stat("Map points", "Map points in all server maps.", Q("sum(hivemap_map_points)"))
+    for code, what, desc, colour in (
+        (0, "tracking", "Agents whose last report says they track.", "green"),
+        (2, "lost", "Agents that report lost tracking (they still send).", "orange"),
+        (3, "disconnected", f"Agents whose reports stopped for over "
+         f"{DISCONNECTED_AFTER_S:g} s: out of radio range, or down.", "red"),
+    ):  # fmt: skip
+        steps = [(None, "green")] if code == 0 else [(None, "green"), (1, colour)]
+        b.stat(f"Agents {what}", desc + " Reported in the agents' pose messages, exported "
+               "by the mapper.", Q(f"sum(hivemap_agent_state == bool {code})"),
+               w=8, h=4, thresholds=steps)  # fmt: skip
     b.timeseries(
         "Keyframes per map",
         "Each server map's size. When two maps merge, the smaller one's line ends and the "
@@ -295,6 +346,57 @@ def team_dashboard() -> dict:
     )  # fmt: skip
 
     b.row("Per agent: tracking and traffic")
+    b.state_timeline(
+        "Tracking state per agent",
+        "What each agent reports in its pose messages (agents are not scraped: the "
+        f"mapper exports their reports). Disconnected: no report for "
+        f"{DISCONNECTED_AFTER_S:g} s.",
+        Q('hivemap_agent_state{agent=~"$agent"}', "{{agent}}"),
+        [(0, "tracking", "green"), (1, "initializing", "blue"), (2, "lost", "orange"),
+         (3, "disconnected", "red")],
+    )  # fmt: skip
+    b.timeseries(
+        "Frames per second per agent",
+        "Camera frames each agent tracks per second, over its last 2 s.",
+        [Q('hivemap_agent_fps{agent=~"$agent"}', "{{agent}}")], "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Frames dropped and keyframes lost (per minute)",
+        "Frames an agent tracked more than a frame period late (a live camera would have "
+        "dropped them), and keyframes it dropped unacknowledged because its buffer was "
+        "full (the server never gets them).",
+        [Q('sum by (agent) (increase(hivemap_agent_frames_dropped_total{agent=~"$agent"}'
+           "[1m]))", "frames {{agent}}"),
+         Q('sum by (agent) (increase(hivemap_agent_keyframes_lost_total{agent=~"$agent"}'
+           "[1m]))", "keyframes {{agent}}")],
+        "short", w=8, thresholds=[(None, "green"), (1, "orange")],
+    )  # fmt: skip
+    b.timeseries(
+        "Resends per agent (per minute)",
+        "Keyframes and map points each agent sent again (a gap in the acks, a server "
+        "asking for a missing predecessor, or no ack in time).",
+        [Q('sum by (agent) (increase(hivemap_agent_resends_total{agent=~"$agent"}[1m]))',
+           "{{agent}}")], "short", w=8,
+    )  # fmt: skip
+    b.timeseries(
+        "Keyframe ack latency as the agent sees it (publish -> ack)",
+        "Median and 95th percentile over each agent's most recent 50 acknowledged "
+        "keyframes: the mapper's latency plus the radio link both ways.",
+        [Q('hivemap_agent_ack_latency_recent_seconds{quantile="0.95", agent=~"$agent"}',
+           "p95 {{agent}}"),
+         Q('hivemap_agent_ack_latency_recent_seconds{quantile="0.5", agent=~"$agent"}',
+           "p50 {{agent}}")], "s",
+        thresholds=[(None, "green"), (LATENCY_WARN_S, "orange"), (LATENCY_BAR_S, "red")],
+    )  # fmt: skip
+    b.timeseries(
+        "Uplink sent by agents vs received by the mapper",
+        "Bytes per second each agent says it sent, and what the mapper received from it: "
+        "a gap is data lost on the way.",
+        [Q('sum by (agent) (rate(hivemap_agent_sent_bytes_total{agent=~"$agent"}[1m]))',
+           "sent {{agent}}"),
+         Q(_agent_of_key('rate(hivemap_bytes_total{service="mapper", direction="in"}[1m])',
+                         "up"), "received {{agent}}")], "Bps",
+    )  # fmt: skip
     b.timeseries(
         "Keyframes stored per second",
         "Keyframes per second each agent got registered and stored.",

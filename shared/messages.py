@@ -347,9 +347,18 @@ class Ack:
 
 @dataclass
 class PoseUpdate:
-    """Agent -> all on ``hivemap/agent/{agent}/up/pose``: the live camera pose, small and lossy."""
+    """Agent -> all on ``hivemap/agent/{agent}/up/pose``: the live camera pose, small and lossy.
+
+    It also carries the agent's health, since agents are never scraped: the mapper
+    exports what they report (``services.mapper.agent_health``). The health fields were
+    added within v1 and are optional; counters are cumulative since the agent started,
+    so a lost pose message loses nothing."""
 
     SCHEMA: ClassVar[str] = "hivemap.pose/1"
+    HEALTH_INTS: ClassVar[tuple[str, ...]] = (
+        "frames_dropped", "kf_lost", "bytes_sent", "resent",
+    )  # fmt: skip
+    HEALTH_FLOATS: ClassVar[tuple[str, ...]] = ("ack_p50_s", "ack_p95_s")
     agent: str
     stamp_ns: int
     T_l_c: np.ndarray  # in the agent's local map
@@ -357,22 +366,48 @@ class PoseUpdate:
     T_ref_c: np.ndarray  # relative to kf_ref, so the server places it in its own map
     tracking: str = "ok"  # ok | lost | init
     fps: float = 0.0
+    # Health (optional): frames not tracked in time (a live camera would have dropped
+    # them), keyframes dropped unacknowledged when the buffer was full, payload bytes
+    # sent, keyframes and map points sent again, and the publish -> ack latency of the
+    # most recent acknowledged keyframes (median and 95th percentile).
+    frames_dropped: int | None = None
+    kf_lost: int | None = None
+    bytes_sent: int | None = None
+    resent: int | None = None
+    ack_p50_s: float | None = None
+    ack_p95_s: float | None = None
 
     def encode(self) -> bytes:
-        return packb(
-            {
-                "schema": self.SCHEMA, "agent": self.agent, "stamp_ns": self.stamp_ns,
-                "T_l_c": self.T_l_c, "kf_ref": self.kf_ref, "T_ref_c": self.T_ref_c,
-                "tracking": self.tracking, "fps": float(self.fps),
-            }
-        )  # fmt: skip
+        d = {
+            "schema": self.SCHEMA, "agent": self.agent, "stamp_ns": self.stamp_ns,
+            "T_l_c": self.T_l_c, "kf_ref": self.kf_ref, "T_ref_c": self.T_ref_c,
+            "tracking": self.tracking, "fps": float(self.fps),
+        }  # fmt: skip
+        for name in self.HEALTH_INTS:
+            if (v := getattr(self, name)) is not None:
+                d[name] = int(v)
+        for name in self.HEALTH_FLOATS:
+            if (v := getattr(self, name)) is not None:
+                d[name] = float(v)
+        return packb(d)
 
     @staticmethod
     def decode(data: bytes) -> PoseUpdate:
         d = _envelope(data, PoseUpdate.SCHEMA)
         fps = d.get("fps", 0.0)
-        if not isinstance(fps, (int, float)):
-            raise DecodeError("fps: expected a number")
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps >= 0:
+            raise DecodeError("fps: expected a non-negative number")
+        health: dict[str, Any] = {}
+        for name in PoseUpdate.HEALTH_INTS:
+            if (v := d.get(name)) is not None:
+                if _int(v, name) < 0:
+                    raise DecodeError(f"{name}: negative")
+                health[name] = v
+        for name in PoseUpdate.HEALTH_FLOATS:
+            if (v := d.get(name)) is not None:
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1e6:
+                    raise DecodeError(f"{name}: expected a non-negative number of seconds")
+                health[name] = float(v)
         return PoseUpdate(
             agent=_str(_get(d, "agent"), "agent"),
             stamp_ns=_int(_get(d, "stamp_ns"), "stamp_ns"),
@@ -381,6 +416,7 @@ class PoseUpdate:
             T_ref_c=_pose(_get(d, "T_ref_c"), "T_ref_c"),
             tracking=_str(d.get("tracking", "ok"), "tracking"),
             fps=float(fps),
+            **health,
         )
 
 

@@ -277,7 +277,11 @@ def test_grafana_dashboards_query_exported_metrics():
                  "hivemap_keyframe_latency_seconds", "hivemap_bytes_total",
                  "hivemap_messages_rejected_total", "hivemap_service_up",
                  "hivemap_api_requests_total", "hivemap_placerec_query_seconds",
-                 "hivemap_optimizations_total", "hivemap_map_queue_depth"):  # fmt: skip
+                 "hivemap_optimizations_total", "hivemap_map_queue_depth",
+                 # agent health, as the agents report it through the mapper
+                 "hivemap_agent_state", "hivemap_agent_fps", "hivemap_agent_resends_total",
+                 "hivemap_agent_frames_dropped_total", "hivemap_agent_sent_bytes_total",
+                 "hivemap_agent_ack_latency_recent_seconds"):  # fmt: skip
         assert name in base, name
 
 

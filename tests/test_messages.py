@@ -109,3 +109,25 @@ def test_wrong_version_names_versions():
     d["schema"] = "hivemap.ack/2"
     with pytest.raises(DecodeError, match="unsupported version"):
         Ack.decode(packb(d))
+
+
+def test_pose_health_fields_are_optional_both_ways():
+    """Health rides in the pose message within v1: a peer of the first version decodes a
+    pose with health (it ignores the fields), and a pose without them decodes as before."""
+    p = sample_pose()
+    p.frames_dropped, p.kf_lost, p.bytes_sent, p.resent = 2, 0, 123_456, 7
+    p.ack_p50_s, p.ack_p95_s = 0.021, 0.064
+    data = p.encode()
+    d = PoseUpdate.decode(data)
+    assert (d.frames_dropped, d.kf_lost, d.bytes_sent, d.resent) == (2, 0, 123_456, 7)
+    assert (d.ack_p50_s, d.ack_p95_s) == (0.021, 0.064)
+    # What a first-version peer reads: the v1 fields only, unchanged.
+    v1 = {k: v for k, v in msgpack.unpackb(data, raw=False).items()
+          if k not in PoseUpdate.HEALTH_INTS + PoseUpdate.HEALTH_FLOATS}  # fmt: skip
+    assert packb(v1) == (GOLDEN / "pose_v1.bin").read_bytes()
+    old = PoseUpdate.decode(packb(v1))
+    assert old.frames_dropped is None and old.ack_p95_s is None
+    for name, bad in (("resent", -1), ("bytes_sent", 1.5), ("ack_p95_s", -0.1),
+                      ("ack_p50_s", "fast"), ("fps", float("nan"))):  # fmt: skip
+        with pytest.raises(DecodeError, match=name):
+            PoseUpdate.decode(packb({**msgpack.unpackb(data, raw=False), name: bad}))

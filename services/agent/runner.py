@@ -41,6 +41,7 @@ from shared.settings import Settings
 from shared.trajectory import Trajectory, format_tum
 
 from .comm import CommModule
+from .health import HealthMeter
 from .local_map_trim import KfInfo, trim
 from .progress import ProgressReporter, Snapshot
 from .reported import ReportedPose
@@ -97,6 +98,7 @@ class Agent:
         c = settings.comm
         self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
         self.stats = AgentStats()
+        self.health = HealthMeter()
         self.poses: list[tuple[int, np.ndarray]] = []  # online: VO pose through S_g_l
         self.vo_poses: list[tuple[int, np.ndarray]] = []  # the VO's own
         self.S_g_l = Sim3.identity()  # VO frame -> frame corrected by the server's map
@@ -136,18 +138,23 @@ class Agent:
             threading.Thread(target=self._connect, name="agent-connect", daemon=True).start()
         self._reporter.start()
         t_start = time.monotonic()
-        stamp0 = None
+        stamp0 = prev_stamp = None
         lost_since = None
         for fr in self.source:
             if self._stop.is_set():
                 break
+            due = period = None
             if self.realtime:
                 stamp0 = fr.stamp_ns if stamp0 is None else stamp0
                 due = t_start + (fr.stamp_ns - stamp0) * 1e-9
+                if prev_stamp is not None:
+                    period = (fr.stamp_ns - prev_stamp) * 1e-9
+                prev_stamp = fr.stamp_ns
                 while time.monotonic() < due:
                     self._service(min(due - time.monotonic(), 0.02))
             r = self.vo.track(fr.image, fr.stamp_ns)
             self.stats.frames += 1
+            self.health.frame(time.monotonic(), due, period)
             self.stats.track_ms.append(r.track_s * 1e3)
             if r.T_w_c is not None:
                 self.vo_poses.append((fr.stamp_ns, r.T_w_c))
@@ -269,12 +276,17 @@ class Agent:
         self.stats.foreign_points += self.vo.add_foreign_points(keys_, pos, c.mp_descriptors[sel])
 
     def _publish_pose(self, r: FrameResult) -> None:
-        if self.bus is None or r.T_w_c is None or not self.vo.kfs:
+        # Lost, the agent still reports (its last pose, marked lost): the server tells a
+        # lost agent from a disconnected one by whether messages keep coming.
+        T = r.T_w_c if r.T_w_c is not None else (self.vo_poses[-1][1] if self.vo_poses else None)
+        if self.bus is None or T is None or not self.vo.kfs:
             return
         ref = self.vo.kfs[max(self.vo.kfs)]
-        msg = PoseUpdate(self.agent, r.stamp_ns, r.T_w_c, ref.id, se3_inv(ref.T_w_c) @ r.T_w_c,
-                         r.state)  # fmt: skip
-        self.bus.put(keys.agent_pose(self.agent), msg.encode(), reliable=False)
+        msg = PoseUpdate(self.agent, r.stamp_ns, T, ref.id, se3_inv(ref.T_w_c) @ T,
+                         r.state, **self.health.fields(self.comm))  # fmt: skip
+        data = msg.encode()
+        self.bus.put(keys.agent_pose(self.agent), data, reliable=False)
+        self.health.pose_bytes += len(data)
 
     # --- local map -> messages ------------------------------------------------------------
     def _own_ids(self, mp: np.ndarray) -> np.ndarray:

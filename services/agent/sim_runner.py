@@ -25,6 +25,7 @@ from shared.trajectory import Trajectory
 from shared.transport import Bus, open_session
 
 from .comm import CommModule
+from .health import HealthMeter
 from .sim_agent import SimAgent
 
 log = logging.getLogger(__name__)
@@ -83,6 +84,9 @@ class SimAgentRunner:
         self.estimates: list[tuple[int, np.ndarray]] = []
         self.kf_ref = -1
         self.T_l_ref = np.eye(4)
+        st = sim.traj.stamps_ns
+        period = float(np.median(np.diff(st))) * 1e-9 / speed if len(st) > 1 and speed > 0 else None
+        self.health = HealthMeter(period)
 
     def run(self, bus: Bus | None = None) -> RunStats:
         if bus is not None:
@@ -103,6 +107,7 @@ class SimAgentRunner:
         pose_interval = 1.0 / self.settings.comm.pose_rate_hz
         last_pose = -1e18
         while not self.sim.done and not self.stop_event.is_set():
+            due = None
             if self.speed > 0:
                 due = (
                     t_start
@@ -111,6 +116,7 @@ class SimAgentRunner:
                 self._service(bus, ack_q, kf_key, until=due)
             stamp, T_l_c, kf = self.sim.step()
             self.stats.frames += 1
+            self.health.frame(time.monotonic(), due)
             self.estimates.append((stamp, T_l_c))
             if kf is not None:
                 self.comm.add_keyframe(kf.kf)
@@ -123,9 +129,17 @@ class SimAgentRunner:
             if now - last_pose >= pose_interval and self.kf_ref >= 0:
                 last_pose = now
                 msg = PoseUpdate(
-                    self.agent, stamp, T_l_c, self.kf_ref, se3_inv(self.T_l_ref) @ T_l_c
+                    self.agent,
+                    stamp,
+                    T_l_c,
+                    self.kf_ref,
+                    se3_inv(self.T_l_ref) @ T_l_c,
+                    "ok",
+                    **self.health.fields(self.comm),
                 )
-                bus.put(pose_key, msg.encode(), reliable=False)
+                data = msg.encode()
+                bus.put(pose_key, data, reliable=False)
+                self.health.pose_bytes += len(data)
             self._service(bus, ack_q, kf_key, until=None)
         self.stats.flight_s = time.monotonic() - t_start
         deadline = time.monotonic() + self.flush_timeout_s

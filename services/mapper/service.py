@@ -45,6 +45,7 @@ from shared.store import LivePose, Store, connect
 from shared.transport import Bus, Received, drain, get_all, open_session
 
 from . import persist
+from .agent_health import HEALTH
 from .collab import Collaboration
 from .feedback import build_chunk
 from .locks import MapLock
@@ -458,6 +459,7 @@ class MapperService:
             REJECTED.labels(SERVICE, key, _reason(e)).inc()
             log.warning("rejected pose on %s: %s", key, e, extra={"key": key})
             return None
+        HEALTH.report(p)
         return p
 
     def store_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
