@@ -406,14 +406,38 @@ def _run_until_signal(stack: Stack, stop: threading.Event) -> int:
 
 
 def _print_urls(stack: Stack) -> None:
+    """Where to look: the viewer first, then the API, each service's metrics, and where
+    Grafana and Prometheus are when the stack runs under docker compose."""
+    from rich.console import Console
+    from rich.table import Table
+
     s = stack.settings
-    print(f"zenoh router : {stack.zenoh_endpoint}")
-    print(f"redis        : {s.redis_url}")
-    print(f"api          : http://{s.api_host}:{s.api_port}/  (viewer), /agents, /docs")
+    api = f"http://{s.api_host}:{s.api_port}"
+    t = Table(title="HiveMap is up: where to look", title_justify="left", show_header=False,
+              box=None, padding=(0, 2))  # fmt: skip
+    t.add_column(style="bold")
+    t.add_column()
+    t.add_row("viewer", f"[link={api}/]{api}/[/link]  (live map, agents, merges and loops)")
+    t.add_row(
+        "api",
+        f"{api}/docs  (REST: /agents, /maps), WebSocket {api.replace('http', 'ws', 1)}/ws/viewer",
+    )
     for spec in service_plan(s, stack.scale):
         if spec.name not in ("router", "redis", "api"):
-            print(f"{spec.name:<13}: http://127.0.0.1:{spec.http_port}/metrics")
-    print("Ctrl-C stops everything.", flush=True)
+            t.add_row(f"{spec.name} metrics", f"http://127.0.0.1:{spec.http_port}/metrics")
+    t.add_row("api metrics", f"{api}/metrics")
+    t.add_row(
+        "grafana",
+        "with `docker compose up`: http://localhost:3000 (dashboards "
+        "HiveMap / team and HiveMap / server; Prometheus at http://localhost:9090)",
+    )
+    t.add_row("zenoh router", stack.zenoh_endpoint)
+    t.add_row("redis", s.redis_url)
+    # In a log (no terminal) lines stay whole instead of wrapping at 80 columns.
+    console = Console(width=None if sys.stdout.isatty() else 200)
+    console.print(t)
+    console.print("Ctrl-C stops everything.")
+    sys.stdout.flush()
 
 
 def _start_or_explain(stack: Stack) -> bool:

@@ -10,6 +10,7 @@ import time
 import urllib.request
 from pathlib import Path
 
+from shared.progress import progress
 from shared.settings import Settings
 
 
@@ -49,7 +50,31 @@ def _metric(port: int, name: str) -> float:
     return total
 
 
-def wait_settled(stack, timeout: float, quiet_s: float = 8.0) -> None:
+def _wait_agents(stack, procs: list, t0: float) -> None:
+    """Until every agent process ended, with a bar of agents done and keyframes stored."""
+    from shared.store import Store, connect
+
+    store = Store(connect(stack.settings.redis_url))
+    left = dict(procs)
+    try:
+        with progress("agents flying", len(procs), "done") as update:
+            while left:
+                for name, p in list(left.items()):
+                    if p.poll() is not None:
+                        del left[name]
+                        print(f"{name} finished ({p.returncode}) after "
+                              f"{time.monotonic() - t0:.0f} s", flush=True)  # fmt: skip
+                try:
+                    kfs = sum((store.agent_info(a) or {}).get("n_kf", 0) for a in store.agents())
+                except OSError:
+                    kfs = 0
+                update(completed=len(procs) - len(left), info=f"{kfs} keyframes stored")
+                time.sleep(0.5)
+    finally:
+        store.r.close()
+
+
+def wait_settled(stack, timeout: float, quiet_s: float = 8.0, on_check=None) -> None:
     """Until every optimization the mapper asked for came back and nothing new was
     asked for ``quiet_s``."""
     mp, op = stack.settings.mapper_metrics_port, stack.settings.optimizer_metrics_port
@@ -65,6 +90,8 @@ def wait_settled(stack, timeout: float, quiet_s: float = 8.0) -> None:
             last, since = state, time.monotonic()
         elif time.monotonic() - since >= (quiet_s if req <= done else 4 * quiet_s):
             return  # settled (or an optimization failed or went stale: don't hang)
+        if on_check is not None:
+            on_check(info=f"{done:.0f}/{req:.0f} optimizations back")
         time.sleep(1.0)
 
 
@@ -125,11 +152,9 @@ def run_team(
             stack.add(f"agent-{name}", argv, {"HIVEMAP_LOG_LEVEL": "WARNING", **env}, agent_nice)
             procs.append((name, stack.procs[-1][1]))
             print(f"{name}: {src}", flush=True)
-        for name, p in procs:
-            p.wait()
-            print(f"{name} finished ({p.returncode}) after {time.monotonic() - t0:.0f} s",
-                  flush=True)  # fmt: skip
-        wait_settled(stack, settle_timeout)
+        _wait_agents(stack, procs, t0)
+        with progress("optimizer settling", None, "checks") as update:
+            wait_settled(stack, settle_timeout, on_check=update)
         trajs = collect(stack.settings.redis_url)
         maps = evaluate_team(trajs)
         print(format_report(maps), flush=True)

@@ -478,3 +478,50 @@ class Store:
             a, _, i = m.decode().rpartition(":")
             out.append((a, int(i)))
         return sorted(out)
+
+    # --- reads for the viewer (the API) -----------------------------------------------
+    # Keyframe gids are (agent index << GID_ID_BITS) | id, the index in ``hm:agent:{a}``
+    # (written by services/mapper/persist.py); loop edges live in ``hm:map:{m}:loops``.
+    GID_ID_BITS = 40
+
+    def map_loops(self, map_id: str) -> list[tuple[int, int]]:
+        """(query gid, candidate gid) of every loop edge of ``map_id``."""
+        out = []
+        for f in self.r.hkeys(f"{k_map(map_id)}:loops"):
+            q, _, c = f.decode().partition(":")
+            out.append((int(q), int(c)))
+        return sorted(out)
+
+    def agents_by_index(self, agents: list[str]) -> dict[int, str]:
+        p = self.r.pipeline(transaction=False)
+        for a in agents:
+            p.hget(k_agent(a), "index")
+        return {int(v): a for a, v in zip(agents, p.execute(), strict=True) if v is not None}
+
+    def point_sample(self, agent: str, cap: int) -> np.ndarray:
+        """(n, 3) map-frame positions of at most ``cap`` of the agent's map points: all of
+        them up to ``cap``, else an even selection in id order (the same points from one
+        call to the next, so a viewer does not flicker)."""
+        if cap <= 0:
+            return np.zeros((0, 3))
+        _, rec = self.map_point_records(agent)
+        pos = rec["pos"]
+        if len(pos) > cap:
+            pos = pos[np.linspace(0, len(pos) - 1, cap).round().astype(np.int64)]
+        return np.asarray(pos, float)
+
+    def keyframe_positions(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, (n, 3) map-frame positions) of the agent's stored keyframes: only the
+        pose field of each, for the viewer's frequent refresh."""
+        ids = self.keyframe_ids(agent)
+        p = self.r.pipeline(transaction=False)
+        for i in ids:
+            p.hget(k_kf(agent, i), "pose")
+        keep, pos = [], []
+        for i, b in zip(ids, p.execute(), strict=True):
+            if b is not None:
+                keep.append(i)
+                pos.append(np.frombuffer(b, "<f8").reshape(4, 4)[:3, 3])
+        if not keep:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        return np.array(keep, np.int64), np.stack(pos)

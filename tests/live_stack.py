@@ -49,22 +49,37 @@ def live_stack(
     agent_prefix: str = "agent",
     env: dict[str, str] | None = None,
     scale: Scale | None = None,
+    start_agents: bool = True,
 ) -> Iterator[Stack]:
     """The stack with ``n_agents`` simulated agents in one process (ids
-    ``{agent_prefix}-0..``), agents started once the API answers."""
+    ``{agent_prefix}-0..``), agents started once the API answers; with
+    ``start_agents=False`` the caller starts them (``add_sim_agents``) when it is ready
+    to watch from the first keyframe."""
     stack = Stack(stack_settings(), env={"HIVEMAP_LOG_LEVEL": "WARNING", **(env or {})},
                   scale=scale)  # fmt: skip
     try:
         stack.start()
-        stack.add(
-            "sim-agents",
-            ["sim-agent", "--id", agent_prefix, "--count", str(n_agents), "--traj", trajs,
-             "--frames", frames, "--speed", str(speed), "--flush-timeout", "20"],
-            env={"HIVEMAP_LOG_LEVEL": "WARNING"},
-        )  # fmt: skip
+        if start_agents:
+            add_sim_agents(stack, n_agents, trajs, frames, speed, agent_prefix)
         yield stack
     finally:
         stack.stop()
+
+
+def add_sim_agents(
+    stack: Stack,
+    n_agents: int = 2,
+    trajs: str = "MH01",
+    frames: str = DEFAULT_FRAMES,
+    speed: float = 2.0,
+    agent_prefix: str = "agent",
+) -> None:
+    stack.add(
+        "sim-agents",
+        ["sim-agent", "--id", agent_prefix, "--count", str(n_agents), "--traj", trajs,
+         "--frames", frames, "--speed", str(speed), "--flush-timeout", "20"],
+        env={"HIVEMAP_LOG_LEVEL": "WARNING"},
+    )  # fmt: skip
 
 
 def get_json(url: str, timeout: float = 5.0):
@@ -85,3 +100,52 @@ def wait_for(pred, timeout: float, what: str, every: float = 0.5):
             last_err = e
         time.sleep(every)
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} ({last_err})")
+
+
+CHROMIUM = "/usr/bin/chromium"  # Debian's (make system-tools); playwright downloads none
+
+
+def chromium_missing() -> str | None:
+    """Why the browser tests cannot run here, or None."""
+    import os
+    import shutil
+
+    exe = CHROMIUM if os.path.exists(CHROMIUM) else shutil.which("chromium")
+    if exe is None:
+        return "Debian's chromium is not installed (`make system-tools` installs it)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the playwright package is not installed (pip install -e '.[dev]')"
+    return None
+
+
+@contextlib.contextmanager
+def viewer_page(url: str, width: int = 1600, height: int = 900):
+    """The viewer at ``url`` in headless Chromium, driven through playwright."""
+    import os
+    import shutil
+
+    from playwright.sync_api import sync_playwright
+
+    exe = CHROMIUM if os.path.exists(CHROMIUM) else shutil.which("chromium")
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(
+            executable_path=exe, headless=True,
+            # root in a container: no sandbox; no GPU here, so Canvas 2D runs in software.
+            args=["--no-sandbox", "--disable-dev-shm-usage"],
+        )  # fmt: skip
+        try:
+            page = browser.new_page(viewport={"width": width, "height": height})
+            page.goto(url)
+            yield page
+        finally:
+            browser.close()
+
+
+def viewer_fps(page, seconds: float = 5.0) -> float:
+    """Frames per second the page drew over ``seconds``, counted in the page."""
+    f0, t0 = page.evaluate("[window.hivemapViewer.frames, performance.now()]")
+    time.sleep(seconds)
+    f1, t1 = page.evaluate("[window.hivemapViewer.frames, performance.now()]")
+    return (f1 - f0) * 1000.0 / (t1 - t0)

@@ -114,3 +114,68 @@ def test_websocket_streams_live_poses(filled):
         assert msg["type"] == "pose" and msg["agent"] == "B" and msg["stamp_ns"] == stamp + 1
         np.testing.assert_allclose(msg["position"], T_l_c[:3, 3], atol=1e-9)
     m.store.r.close()
+
+
+def _until(ws, pred, n: int = 50) -> dict:
+    for _ in range(n):
+        msg = json.loads(ws.receive_text())
+        if pred(msg):
+            return msg
+    raise AssertionError("message never came")
+
+
+def test_viewer_feed_over_websocket(filled):
+    """What the viewer draws comes over /ws/viewer: state (agents, trajectories, status),
+    each map's capped points, then live poses."""
+    import time
+
+    from services.api import feed
+
+    s, last = filled
+    m = MapperService(s)
+    m.load()
+    with TestClient(create_app(s)) as c:
+        js = c.get("/static/viewer.js")
+        assert js.status_code == 200 and "ws/viewer" in js.text
+        assert c.get("/static/secrets.txt").status_code == 404
+        pts = c.get("/maps/map-A/points?limit=100").json()
+        assert pts["n"] == 100 and pts["n_total"] > 100
+        with c.websocket_connect("/ws/viewer") as ws:
+            assert json.loads(ws.receive_text())["type"] == "hello"
+            st = _until(ws, lambda x: x["type"] == "state")
+            agents = {a["agent"]: a for a in st["agents"]}
+            assert set(agents) == {"A", "B"}
+            for a, info in agents.items():
+                assert len(st["trajectories"][a]) == info["n_kf"] > 5
+                # The fixture's poses were received at time 0: long gone.
+                assert info["status"] == "disconnected"
+            np.testing.assert_allclose(agents["A"]["position"], last["A"][1][:3, 3], atol=1e-3)
+            got = _until(ws, lambda x: x["type"] == "points" and x["map_id"] == "map-B")
+            assert 0 < got["n"] <= feed.POINTS_CAP and len(got["xyz"]) == 3 * got["n"]
+            stamp, T_l_c, kid, T_l_kf = last["B"]
+            p = PoseUpdate("B", stamp + 1, T_l_c, kid, se3_inv(T_l_kf) @ T_l_c, "lost", 20.0)
+            m.process_pose_bytes(keys.agent_pose("B"), p.encode(), time.time_ns())
+            poses = _until(ws, lambda x: x["type"] == "poses")["poses"]
+            assert [(q["agent"], q["status"]) for q in poses] == [("B", "lost")]
+    m.store.r.close()
+
+
+def test_viewer_events_are_merges_and_new_loops():
+    from services.api.feed import diff_events
+
+    def st(maps, loops, t=1.0):
+        return {"t": t, "agents": [{"agent": "A", "position": [1, 2, 3]}],
+                "maps": [{"map_id": k, "agents": ["A"], "merged_into": v} for k, v in maps],
+                "loops": loops}  # fmt: skip
+
+    e = {"id": "1:2", "a": [0, 0, 0], "b": [1, 1, 1]}
+    a = st([("m0", None), ("m1", None)], {"m0": [], "m1": []})
+    b = st([("m0", None), ("m1", "m0")], {"m0": [e], "m1": []})
+    c = st([("m0", None), ("m1", "m0")], {"m0": [e, {**e, "id": "3:4"}], "m1": []})
+    assert diff_events(None, a) == []
+    (merge,) = diff_events(a, b)  # the merge's own edge is no loop event
+    assert (merge["kind"], merge["source"], merge["target"], merge["at"]) == (
+        "merge", "m1", "m0", [1, 2, 3])  # fmt: skip
+    (loop,) = diff_events(b, c)
+    assert loop["kind"] == "loop" and loop["map_id"] == "m0"
+    assert diff_events(c, c) == []

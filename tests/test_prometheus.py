@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from live_stack import get_json, live_stack, metrics_ports, wait_for
+from live_stack import add_sim_agents, get_json, live_stack, metrics_ports, wait_for
 
 from services import dashboards
 from shared import keys
@@ -113,7 +113,8 @@ def test_every_panel_returns_data(tmp_path):
         )
     t0 = time.time()
     # A short BA budget: the optimization panels need one finished run, not a converged one.
-    with live_stack(n_agents=2, env={"HIVEMAP_OPTIMIZER__BA_TIME_BUDGET_S": "2"}) as stack:
+    env = {"HIVEMAP_OPTIMIZER__BA_TIME_BUDGET_S": "2"}
+    with live_stack(n_agents=2, env=env, start_agents=False) as stack:
         s = stack.settings
         api = f"http://127.0.0.1:{s.api_port}"
         prom = Prometheus(exe, scrape_config_for(metrics_ports(s)), tmp_path)
@@ -121,6 +122,10 @@ def test_every_panel_returns_data(tmp_path):
             wait_for(lambda: prom.api("targets")["activeTargets"]
                      and all(t["health"] == "up" for t in prom.api("targets")["activeTargets"]),
                      60, f"every target up ({prom.log.read_text()[-2000:]})")  # fmt: skip
+            # Agents start once every target was scraped: a merge and an optimization
+            # within the first seconds would otherwise be in the first sample of their
+            # counters, where rate() sees no increase.
+            add_sim_agents(stack, 2)
             wait_for(lambda: get_json(f"{api}/agents"), 60, "agents in the API")
             _exercise_rejections(stack.zenoh_endpoint, api)
             # The rare events the overview counts: a merge, and an optimization finished.
@@ -143,5 +148,10 @@ def test_every_panel_returns_data(tmp_path):
                         missing.append(f"{f.name} / {title}: {expr}")
             assert n >= 40
             assert not missing, "panels without data:\n" + "\n".join(missing)
+            # Both agents' health came through the mapper, and says they track.
+            states = prom.api("query", query="hivemap_agent_state")["result"]
+            assert sorted(r["metric"]["agent"] for r in states) == ["agent-0", "agent-1"]
+            fps = prom.api("query", query="max_over_time(hivemap_agent_fps[1m])")["result"]
+            assert all(float(r["value"][1]) > 5 for r in fps), fps
         finally:
             prom.stop()

@@ -7,10 +7,12 @@ produces (``shared/`` knows no service): ``euroc:DIR`` then replays the same fra
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
 
+from shared.progress import progress
 from shared.settings import Settings
 
 
@@ -35,19 +37,15 @@ def write_euroc(
     (cam_dir / "sensor.yaml").write_text(src.camera.to_euroc_yaml())
     n = len(src)
     t0 = time.monotonic()
-    with open(cam_dir / "data.csv", "w") as f:
+    bar = contextlib.nullcontext(lambda **_: None) if quiet else progress(
+        f"render {seq}", n, "frames")  # fmt: skip
+    with open(cam_dir / "data.csv", "w") as f, bar as update:
         f.write("#timestamp [ns],filename\n")
-        for fr in src:
+        for k, fr in enumerate(src, 1):
             name = f"{fr.stamp_ns}.png"
             cv2.imwrite(str(cam_dir / "data" / name), fr.image)
             f.write(f"{fr.stamp_ns},{name}\n")
-            if not quiet:
-                k = fr.index + 1
-                rate = k / max(time.monotonic() - t0, 1e-9)
-                bar = "#" * int(30 * k / n)
-                print(f"\r{seq} [{bar:<30}] {k}/{n} {rate:5.1f} fps", end="", file=sys.stderr)
-    if not quiet:
-        print(file=sys.stderr)
+            update(completed=k, info=f"{k / max(time.monotonic() - t0, 1e-9):5.1f} fps")
     write_tum(out / f"{seq}_gt.tum", src.ground_truth)
     return n
 

@@ -15,7 +15,7 @@ from shared.store import Store, connect
 
 from .errors import http_error, validation_error
 from .metrics import REQUEST_SECONDS, REQUESTS
-from .routes import agents, health, maps, viewer, ws
+from .routes import agents, health, live, maps, viewer, ws
 
 
 def create_app(settings: Settings) -> FastAPI:
@@ -42,6 +42,6 @@ def create_app(settings: Settings) -> FastAPI:
         REQUEST_SECONDS.labels(path).observe(time.perf_counter() - t0)
         return response
 
-    for r in (agents.router, maps.router, health.router, ws.router, viewer.router):
+    for r in (agents.router, maps.router, health.router, ws.router, live.router, viewer.router):
         app.include_router(r)
     return app

@@ -55,6 +55,7 @@ class MapOut(BaseModel):
 class PointsOut(BaseModel):
     map_id: str
     n: int
+    n_total: int = 0
     points: list[list[float]]
 
 

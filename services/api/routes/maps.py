@@ -8,6 +8,7 @@ from fastapi import APIRouter, Query
 
 from shared.store import Store
 
+from .. import feed
 from ..deps import StoreDep
 from ..errors import NotFound
 from ..models import MapOut, PointsOut
@@ -36,15 +37,12 @@ def get_map(map_id: str, store: StoreDep) -> MapOut:
 
 @router.get("/{map_id}/points", response_model=PointsOut)
 def map_points(
-    map_id: str, store: StoreDep, limit: int = Query(20000, ge=1, le=1_000_000)
+    map_id: str, store: StoreDep, limit: int = Query(feed.POINTS_CAP, ge=1, le=1_000_000)
 ) -> PointsOut:
-    """Map point positions in the map frame (every agent whose data is in the map)."""
-    info = _map(store, map_id)
-    pts: list[list[float]] = []
-    for a in info["agents"]:
-        _, rec = store.map_point_records(a)
-        pts.extend(rec["pos"].round(4).tolist())
-        if len(pts) >= limit:
-            break
-    pts = pts[:limit]
-    return PointsOut(map_id=map_id, n=len(pts), points=pts)
+    """Map point positions in the map frame (every agent whose data is in the map). Past
+    ``limit``, an even selection of them, shared out among the map's agents;
+    ``n_total`` says how many there are."""
+    _map(store, map_id)
+    d = feed.points(store, map_id, limit)
+    pts = [d["xyz"][i : i + 3] for i in range(0, len(d["xyz"]), 3)]
+    return PointsOut(map_id=map_id, n=len(pts), n_total=d["n_total"], points=pts)

@@ -1,0 +1,122 @@
+"""What the viewer draws, read from Redis: per map its agents, keyframe trajectories,
+loop edges and a capped sample of its points; per agent its status and live pose.
+
+Plain functions on a Store (the WebSocket handler runs them in a thread), so each
+refresh is a handful of pipelined reads however many clients watch.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from shared.store import Store, k_mps
+
+from .models import pose_out
+
+# No pose for this long: the agent is shown as disconnected (agents send at 10-20 Hz;
+# the mapper's agent-health export uses the same limit).
+DISCONNECTED_AFTER_S = 3.0
+# Map points sent per map at most (issue 21: served with a cap).
+POINTS_CAP = 20_000
+
+
+def _r(a: np.ndarray, nd: int = 3) -> list:
+    return np.round(np.asarray(a, float), nd).tolist()
+
+
+def agent_status(doc: dict | None, now_ns: int) -> str:
+    """tracking | initializing | lost | disconnected, from the agent's latest pose."""
+    if doc is None:
+        return "disconnected"
+    age = (now_ns - int(doc.get("recv_ns", 0))) * 1e-9
+    if age > DISCONNECTED_AFTER_S:
+        return "disconnected"
+    return {"ok": "tracking", "init": "initializing"}.get(str(doc.get("tracking")), "lost")
+
+
+def state(store: Store) -> dict:
+    """Maps, agents (status, live pose, counts), keyframe trajectories and loop edges."""
+    now_ns = time.time_ns()
+    agents_out, trajs = [], {}
+    kf_pos: dict[tuple[str, int], list[float]] = {}
+    names = store.agents()
+    for a in names:
+        info = store.agent_info(a)
+        if info is None:
+            continue
+        doc = store.latest_pose(a)
+        ids, pos = store.keyframe_positions(a)
+        trajs[a] = _r(pos)
+        for i, p in zip(ids.tolist(), trajs[a], strict=True):
+            kf_pos[(a, i)] = p
+        out = {"agent": a, "map_id": info["map_id"], "n_kf": info["n_kf"],
+               "n_mp": info["n_mp"], "status": agent_status(doc, now_ns)}  # fmt: skip
+        if doc is not None:
+            po = pose_out(doc)
+            out.update(position=_r(po.position), quaternion_xyzw=_r(po.quaternion_xyzw, 4),
+                       fps=round(po.fps, 1), tracking=po.tracking,
+                       age_s=round((now_ns - int(doc.get("recv_ns", 0))) * 1e-9, 2))  # fmt: skip
+        agents_out.append(out)
+    by_index = store.agents_by_index(names)
+    mask = (1 << Store.GID_ID_BITS) - 1
+    maps, loops = [], {}
+    for m in store.maps():
+        info = store.map_info(m)
+        if info is None:
+            continue
+        maps.append({k: info[k] for k in ("map_id", "agents", "n_kf", "merged_into")})
+        edges = []
+        for q, c in store.map_loops(m):
+            ends = [
+                kf_pos.get((by_index.get(g >> Store.GID_ID_BITS, ""), g & mask)) for g in (q, c)
+            ]
+            if ends[0] is not None and ends[1] is not None:
+                edges.append({"id": f"{q}:{c}", "a": ends[0], "b": ends[1]})
+        loops[m] = edges
+    return {"type": "state", "t": now_ns * 1e-9, "maps": maps, "agents": agents_out,
+            "trajectories": trajs, "loops": loops}  # fmt: skip
+
+
+def points(store: Store, map_id: str, cap: int = POINTS_CAP) -> dict:
+    """A sample of at most ``cap`` of the map's points, shared out evenly among its
+    agents, as a flat [x0, y0, z0, x1, ...] list (millimetres are enough to draw)."""
+    info = store.map_info(map_id)
+    agents = info["agents"] if info else []
+    n_total = 0
+    parts = []
+    left = cap
+    for k, a in enumerate(agents):
+        share = left // (len(agents) - k)
+        p = store.point_sample(a, share)
+        n_total += int(store.r.hlen(k_mps(a)))
+        left -= len(p)
+        parts.append(p)
+    pts = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return {"type": "points", "map_id": map_id, "n": len(pts), "n_total": n_total,
+            "xyz": _r(pts.reshape(-1)) if len(pts) else []}  # fmt: skip
+
+
+def diff_events(prev: dict | None, cur: dict) -> list[dict]:
+    """Merges and loops that appeared between two states, as viewer events."""
+    if prev is None:
+        return []
+    out = []
+    was_merged = {m["map_id"]: m["merged_into"] for m in prev["maps"]}
+    pose_of = {a["agent"]: a.get("position") for a in cur["agents"]}
+    for m in cur["maps"]:
+        if m["merged_into"] and not was_merged.get(m["map_id"]):
+            at = next((pose_of[a] for a in m["agents"] if pose_of.get(a)), None)
+            out.append({"type": "event", "kind": "merge", "t": cur["t"], "map_id": m["merged_into"],
+                        "source": m["map_id"], "target": m["merged_into"], "at": at})  # fmt: skip
+    merged_now = {e["target"] for e in out}
+    for map_id, edges in cur["loops"].items():
+        if map_id in merged_now:
+            continue  # the merge's own constraint is stored as a loop edge too
+        seen = {e["id"] for es in prev["loops"].values() for e in es}
+        for e in edges:
+            if e["id"] not in seen:
+                out.append({"type": "event", "kind": "loop", "t": cur["t"], "map_id": map_id,
+                            "at": e["a"], "to": e["b"]})  # fmt: skip
+    return out

@@ -1,0 +1,71 @@
+"""The viewer in a real browser: Debian's Chromium, headless, driven by playwright, against
+a running stack with two simulated agents. Agents and map points appear, what is drawn
+moves, the page keeps its frame rate; a screenshot goes to bench/results/viewer.png."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+from live_stack import (
+    add_sim_agents,
+    chromium_missing,
+    get_json,
+    live_stack,
+    viewer_fps,
+    viewer_page,
+    wait_for,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+SHOT = ROOT / "bench/results/viewer.png"
+
+
+def _drawn(page) -> dict:
+    return page.evaluate("JSON.parse(JSON.stringify(window.hivemapViewer.drawn))")
+
+
+def test_viewer_shows_the_team(tmp_path):
+    why = chromium_missing()
+    if why:
+        pytest.skip(why)
+    with live_stack(n_agents=2, start_agents=False) as stack:
+        api = f"http://127.0.0.1:{stack.settings.api_port}"
+        with viewer_page(api + "/") as page:
+            # The page is up before any agent: it must pick them up as they come.
+            page.wait_for_function("window.hivemapViewer && window.hivemapViewer.frames > 5")
+            add_sim_agents(stack, 2)
+            wait_for(lambda: len(get_json(f"{api}/agents")) == 2, 60, "two agents in the API")
+            page.wait_for_function(
+                "Object.keys(window.hivemapViewer.drawn.poses).length == 2"
+                " && window.hivemapViewer.drawn.points > 500", timeout=60_000,
+            )  # fmt: skip
+            a = _drawn(page)
+            time.sleep(2.0)
+            b = _drawn(page)
+            assert set(a["poses"]) == set(b["poses"]) == {"agent-0", "agent-1"}
+            for agent in a["poses"]:
+                pa, pb = a["poses"][agent], b["poses"][agent]
+                moved = max(abs(x - y) for x, y in zip(pa["world"], pb["world"], strict=True))
+                assert moved > 0.05, (agent, pa, pb)  # flying at 2x: metres in 2 s
+                assert pb["status"] == "tracking"
+            fps = viewer_fps(page, 3.0)
+            assert fps > 20, f"viewer draws {fps:.1f} fps"
+            # Agent status in the side table, the scale bar's length label on the canvas
+            # (checked through what the page says it drew), the points count in the header.
+            table = page.inner_text("#agents tbody")
+            assert "agent-0" in table and "tracking" in table
+            assert "points" in page.inner_text("#totals")
+            # Wait for the merge the two overlapping agents make, so the shot shows one map.
+            page.wait_for_function(
+                "document.querySelectorAll('#maps button').length == 1", timeout=60_000
+            )
+            time.sleep(1.0)
+            SHOT.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SHOT))
+            events = page.inner_text("#events")
+            (ROOT / "bench/results/viewer.json").write_text(json.dumps(
+                {"agents": 2, "fps": round(fps, 1), "points_drawn": b["points"],
+                 "events": events.splitlines()[:10]}, indent=2) + "\n")  # fmt: skip
