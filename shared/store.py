@@ -510,18 +510,18 @@ class Store:
             pos = pos[np.linspace(0, len(pos) - 1, cap).round().astype(np.int64)]
         return np.asarray(pos, float)
 
-    def keyframe_positions(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
-        """(ids, (n, 3) map-frame positions) of the agent's stored keyframes: only the
-        pose field of each, for the viewer's frequent refresh."""
+    def keyframe_poses(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, (n, 4, 4) T_m_kf) of the agent's stored keyframes: only the pose field of
+        each, for the viewer's frequent refresh."""
         ids = self.keyframe_ids(agent)
         p = self.r.pipeline(transaction=False)
         for i in ids:
             p.hget(k_kf(agent, i), "pose")
-        keep, pos = [], []
+        keep, poses = [], []
         for i, b in zip(ids, p.execute(), strict=True):
             if b is not None:
                 keep.append(i)
-                pos.append(np.frombuffer(b, "<f8").reshape(4, 4)[:3, 3])
+                poses.append(np.frombuffer(b, "<f8").reshape(4, 4))
         if not keep:
-            return np.zeros(0, np.int64), np.zeros((0, 3))
-        return np.array(keep, np.int64), np.stack(pos)
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        return np.array(keep, np.int64), np.stack(poses)

@@ -36,19 +36,41 @@ def agent_status(doc: dict | None, now_ns: int) -> str:
     return {"ok": "tracking", "init": "initializing"}.get(str(doc.get("tracking")), "lost")
 
 
+def up_direction(kf_pos: np.ndarray, R: np.ndarray, pts: np.ndarray | None = None) -> np.ndarray:
+    """A map's "up" (unit 3-vector in its frame), for drawing it top-down.
+
+    Robots and drones move mostly level, so the axis is the direction the keyframe
+    positions vary least along, once there are enough of them; before, the cameras'
+    mean -y (a map's frame is a camera frame, y down). The sign: a camera sees more of
+    the floor than of the ceiling, so most map points lie below the keyframes; without
+    points, the cameras' -y decides."""
+    down = R[:, :, 1].mean(0) if len(R) else np.array([0.0, 1.0, 0.0])
+    up = -down / max(np.linalg.norm(down), 1e-9)
+    if len(kf_pos) >= 10:
+        w, v = np.linalg.eigh(np.cov(np.asarray(kf_pos, float).T))
+        if w[0] < 0.35 * w[1]:
+            up = v[:, 0]
+    if pts is not None and len(pts) >= 50 and len(kf_pos):
+        below = np.median(pts @ up) < np.median(np.asarray(kf_pos) @ up)
+        return up if below else -up
+    return up if up @ down <= 0 else -up
+
+
 def state(store: Store) -> dict:
     """Maps, agents (status, live pose, counts), keyframe trajectories and loop edges."""
     now_ns = time.time_ns()
     agents_out, trajs = [], {}
     kf_pos: dict[tuple[str, int], list[float]] = {}
+    rots: dict[str, list[np.ndarray]] = {}
     names = store.agents()
     for a in names:
         info = store.agent_info(a)
         if info is None:
             continue
         doc = store.latest_pose(a)
-        ids, pos = store.keyframe_positions(a)
-        trajs[a] = _r(pos)
+        ids, T = store.keyframe_poses(a)
+        trajs[a] = _r(T[:, :3, 3])
+        rots.setdefault(info["map_id"], []).append(T)
         for i, p in zip(ids.tolist(), trajs[a], strict=True):
             kf_pos[(a, i)] = p
         out = {"agent": a, "map_id": info["map_id"], "n_kf": info["n_kf"],
@@ -67,6 +89,9 @@ def state(store: Store) -> dict:
         if info is None:
             continue
         maps.append({k: info[k] for k in ("map_id", "agents", "n_kf", "merged_into")})
+        if m in rots:
+            T = np.concatenate(rots[m])
+            maps[-1]["up"] = _r(up_direction(T[:, :3, 3], T[:, :3, :3]), 4)
         edges = []
         for q, c in store.map_loops(m):
             ends = [
@@ -94,8 +119,11 @@ def points(store: Store, map_id: str, cap: int = POINTS_CAP) -> dict:
         left -= len(p)
         parts.append(p)
     pts = np.concatenate(parts) if parts else np.zeros((0, 3))
+    poses = [store.keyframe_poses(a)[1] for a in agents]
+    T = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
+    up = up_direction(T[:, :3, 3], T[:, :3, :3], pts)
     return {"type": "points", "map_id": map_id, "n": len(pts), "n_total": n_total,
-            "xyz": _r(pts.reshape(-1)) if len(pts) else []}  # fmt: skip
+            "xyz": _r(pts.reshape(-1)) if len(pts) else [], "up": _r(up, 4)}  # fmt: skip
 
 
 def diff_events(prev: dict | None, cur: dict) -> list[dict]:

@@ -38,7 +38,7 @@ function setConn(cls, text) { const c = document.getElementById("conn"); c.class
 function onMessage(m) {
   if (m.type === "state") onState(m);
   else if (m.type === "poses") for (const p of m.poses) onPose(p);
-  else if (m.type === "points") S.points[m.map_id] = { xyz: Float32Array.from(m.xyz), n: m.n, total: m.n_total };
+  else if (m.type === "points") S.points[m.map_id] = { xyz: Float32Array.from(m.xyz), n: m.n, total: m.n_total, up: m.up };
   else if (m.type === "event") onEvent(m);
 }
 
@@ -138,37 +138,18 @@ const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
 const norm = (a) => { const n = Math.hypot(a[0], a[1], a[2]) || 1; return [a[0] / n, a[1] / n, a[2] / n]; };
 
-// A map's frame is its first keyframe's camera frame (y down, z forward): "up" is the
-// direction the keyframes vary least along (robots move mostly level), signed towards
-// the camera's -y; kept once found, so the view does not turn as the map grows.
-function basis(mapId, trajs) {
+// Each map's "up" comes from the server (feed.up_direction; the one sent with the points
+// also knows where the floor is); x is the map's x axis made level, so the view keeps its
+// orientation as the map grows.
+function basis(mapId) {
+  const m = S.maps.find((x) => x.map_id === mapId), P = S.points[mapId];
+  const up = norm(P && P.up ? P.up : m && m.up ? m.up : [0, -1, 0]);
   const b = S.basis[mapId];
-  const pts = [];
-  for (const a in trajs) for (const p of trajs[a]) pts.push(p);
-  if (b && (b.n >= 40 || pts.length < b.n * 2)) return b;
-  let up = [0, -1, 0];
-  if (pts.length >= 10) {
-    const c = [0, 0, 0];
-    for (const p of pts) { c[0] += p[0]; c[1] += p[1]; c[2] += p[2]; }
-    c[0] /= pts.length; c[1] /= pts.length; c[2] /= pts.length;
-    const C = [[0, 0, 0], [0, 0, 0], [0, 0, 0]];
-    for (const p of pts) {
-      const d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
-      for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++) C[i][j] += d[i] * d[j];
-    }
-    // Smallest eigenvector by power iteration on (tr C) I - C.
-    const tr = C[0][0] + C[1][1] + C[2][2];
-    let v = [0, -1, 0.01];
-    for (let k = 0; k < 60; k++) {
-      v = norm([tr * v[0] - dot(C[0], v), tr * v[1] - dot(C[1], v), tr * v[2] - dot(C[2], v)]);
-    }
-    const lam = dot(v, [dot(C[0], v), dot(C[1], v), dot(C[2], v)]) / pts.length;
-    if (lam < 0.25 * tr / pts.length) up = v[1] > 0 ? [-v[0], -v[1], -v[2]] : v;
-  }
-  let e1 = [1, 0, 0];
+  if (b && dot(b.up, up) > 0.995) return b;
+  let e1 = Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 0, 1];
   e1 = norm([e1[0] - up[0] * dot(e1, up), e1[1] - up[1] * dot(e1, up), e1[2] - up[2] * dot(e1, up)]);
   const e2 = cross(up, e1);
-  return (S.basis[mapId] = { e1, e2, up, n: pts.length });
+  return (S.basis[mapId] = { e1, e2, up });
 }
 const toLocal = (B, p) => [dot(p, B.e1), dot(p, B.e2), dot(p, B.up)];
 
@@ -201,7 +182,7 @@ function scene() {
     const g = S.agents[a];
     if (g && g.map_id === mapId && S.trajs[a].length) trajs[a] = S.trajs[a];
   }
-  const B = basis(mapId, trajs);
+  const B = basis(mapId);
   const out = { mapId, B, trajs: {}, poses: [], loops: [], merges: [], pts: null };
   for (const a in trajs) out.trajs[a] = trajs[a].map((p) => toLocal(B, p));
   for (const a in S.agents) {
