@@ -23,6 +23,7 @@ import random
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -31,9 +32,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import numpy as np  # noqa: E402
 from bench_demo import scrape  # noqa: E402
 from common import table, write_report  # noqa: E402
+from plots import TrafficSampler, latency_vs_team, traffic_over_time  # noqa: E402
 
 from services import launcher  # noqa: E402
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from shared.progress import progress  # noqa: E402
 from shared.redis_server import free_port  # noqa: E402
 from shared.runtime import set_priority  # noqa: E402
 from shared.settings import Settings  # noqa: E402
@@ -84,7 +87,9 @@ def _windows(series: list, w: float) -> list[float]:
             else float("nan") for i in range(idx.max() + 1)]  # fmt: skip
 
 
-def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dict]:
+def run_latency(
+    n_agents: int, seconds: float, collab: bool = False, traffic: dict | None = None
+) -> list[dict]:
     settings = Settings(
         api_port=free_port(),
         mapper_metrics_port=free_port(),
@@ -112,7 +117,16 @@ def run_latency(n_agents: int, seconds: float, collab: bool = False) -> list[dic
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]
-        procs[0][2].wait(seconds * 3 + 120)
+        sampler = TrafficSampler(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        t0 = time.monotonic()
+        with progress(f"{n_agents} agent(s) flying", seconds, "s") as update:
+            while p.poll() is None and time.monotonic() - t0 < seconds * 3 + 120:
+                time.sleep(0.5)
+                update(completed=min(seconds, time.monotonic() - t0))
+        if traffic is not None:
+            traffic[f"{n_agents} agent{'s' if n_agents > 1 else ''}"] = sampler.stop()
+        else:
+            sampler.stop()
         load_after = os.getloadavg()
         metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
     finally:
@@ -212,8 +226,10 @@ def main() -> int:
     report: dict = {}
     if args.only in ("", "latency"):
         counts = [int(x) for x in args.counts.split(",")]
-        rows = [r for n in counts for r in run_latency(n, args.seconds, args.collab)]
+        traffic: dict = {}
+        rows = [r for n in counts for r in run_latency(n, args.seconds, args.collab, traffic)]
         report["latency"] = rows
+        report["traffic"] = traffic
         report["latency_seconds"] = args.seconds
         print(table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
                            "p95_ms", "mapper_mean_ms", "mapper_p95_ms", "bytes_per_s",
@@ -248,6 +264,11 @@ def main() -> int:
     name = "mapper" + (f"_{args.only}" if args.only else "") + ("_collab" if args.collab else "")
     path = write_report(name, report)
     print(f"written {path}")
+    if report.get("latency"):
+        print("plot", latency_vs_team(report["latency"], path.with_name(f"{name}_vs_team.png"),
+                                      f"Keyframe latency against team size ({name})"))  # fmt: skip
+        print("plot", traffic_over_time(report["traffic"], path.with_name(f"{name}_traffic.png"),
+                                        f"Mapper traffic over time ({name})"))  # fmt: skip
     return 0
 
 

@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from bench_flight import flight_metrics  # noqa: E402
 from common import table, write_report  # noqa: E402
+from plots import aligned_trajectories, trajectories  # noqa: E402
 
 from services.team_cli import run_team  # noqa: E402
 from shared import keys  # noqa: E402
@@ -196,6 +197,10 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
             flight[name] = flight_metrics(read_tum(out / f"{name}_online.tum"),
                                           read_tum(out / f"{name}_vo.tum"), gt)  # fmt: skip
     doc.pop("stack", None)
+    # The server's keyframe trajectories (run_team wrote them), for the plot.
+    map_of = {a: m["map"] for m in doc["maps"] for a in m["agents"]}
+    server = {name: (map_of.get(name, "?"), read_tum(out / f"{name}_server.tum"))
+              for name, _, _ in sources if (out / f"{name}_server.tum").exists()}  # fmt: skip
     judged = [m for m in matches if m["correct"] is not None]
     return {
         "sequences": seqs, "seeds": seeds, "frames": frames, "feedback": feedback,
@@ -204,6 +209,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         "precision": (sum(m["correct"] for m in judged) / len(judged)) if judged else None,
         "optimizations": sum(len(v) for v in rec.opt_end.values()),
         "kf_latency_during_opt_ms": _pcts(during), "kf_latency_other_ms": _pcts(other),
+        "trajectories": aligned_trajectories(server),
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
         "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())), "flight": flight,
         "camera": camera, "inject": {k: v for k, v in os.environ.items()
@@ -257,6 +263,10 @@ def main() -> int:
     if "feedback" in only or "feedback_off" in only:
         runs["feedback_off"] = team(["MH01", "MH02"], [0, 0], args.frames, feedback=False)
     path = write_report(args.name, {"runs": runs})
+    for name, r in runs.items():
+        if r.get("trajectories"):
+            png = path.with_name(f"{args.name}_{name}_trajectories.png")
+            print("plot", trajectories(r["trajectories"], png, f"{args.name} {name}"))
     rows = []
     for name, r in runs.items():
         for m in r["eval"]:

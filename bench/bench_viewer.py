@@ -1,0 +1,159 @@
+"""Viewer under load: the whole stack (router, redis, mapper, placerec, optimizer, api),
+N simulated agents flying MH01..MH05 in real time, and the viewer open in Debian's
+headless Chromium (playwright, executable_path; no browser download).
+
+Measured: frames per second the page draws (counted in the page, 5 s windows), what it
+shows (agents, points), the mapper's keyframe latency per agent while it runs (its
+histogram, received -> stored + acked; the bar is p95 <= 200 ms),
+the mapper's traffic over time; every agent's server trajectory against ground truth.
+Writes bench/results/NAME.json, NAME.png (screenshot) and the plots beside them.
+
+    flock /tmp/hivemap-cpu.lock .venv/bin/python bench/bench_viewer.py [--agents 16]
+        [--seconds 60] [--no-viewer]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import numpy as np  # noqa: E402
+from bench_demo import scrape  # noqa: E402
+from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
+from common import RESULTS, table, write_report  # noqa: E402
+from live_stack import chromium_missing, stack_settings, viewer_page  # noqa: E402
+from plots import (  # noqa: E402
+    TrafficSampler,
+    aligned_trajectories,
+    traffic_over_time,
+    trajectories,
+)
+
+from services.launcher import Stack  # noqa: E402
+from services.team_cli import collect  # noqa: E402
+from shared.progress import progress  # noqa: E402
+from shared.trajectory import SEQUENCES  # noqa: E402
+
+LATENCY_BAR_MS = 200.0
+
+
+def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
+    stack = Stack(stack_settings(), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
+    stack.start()
+    s = stack.settings
+    api = f"http://127.0.0.1:{s.api_port}"
+    mapper = f"http://127.0.0.1:{s.mapper_metrics_port}/metrics"
+    fps: list[dict] = []
+    shot = RESULTS / f"{name}.png"
+    load_before = os.getloadavg()
+    try:
+        sampler = TrafficSampler(mapper)
+        with viewer_page(api + "/") if with_viewer else _no_page() as page:
+            stack.add(
+                "sim-agents",
+                ["sim-agent", "--id", "agent", "--count", str(n_agents),
+                 "--traj", ",".join(SEQUENCES), "--frames", f"0:{int(seconds * 20)}",
+                 "--speed", "1", "--flush-timeout", "20"],
+                {"HIVEMAP_LOG_LEVEL": "WARNING"}, AGENT_NICE,
+            )  # fmt: skip
+            agents = stack.procs[-1][1]
+            t0 = time.monotonic()
+            with progress(f"{n_agents} agents flying", seconds, "s") as update:
+                while agents.poll() is None and time.monotonic() - t0 < 3 * seconds + 120:
+                    if page is None:
+                        time.sleep(1.0)
+                    else:
+                        f0, w0 = page.evaluate("[hivemapViewer.frames, performance.now()]")
+                        time.sleep(5.0)
+                        f1, w1 = page.evaluate("[hivemapViewer.frames, performance.now()]")
+                        d = page.evaluate("hivemapViewer.drawn")
+                        fps.append({"t": round(time.monotonic() - t0, 1),
+                                    "fps": round((f1 - f0) * 1000 / (w1 - w0), 1),
+                                    "agents": d["agents"], "points": d["points"]})  # fmt: skip
+                        if not shot_taken(shot, t0) and time.monotonic() - t0 > 0.7 * seconds:
+                            page.screenshot(path=str(shot))
+                        update(info=f"viewer {fps[-1]['fps']:.0f} fps, {d['agents']} agents")
+                    update(completed=min(seconds, time.monotonic() - t0))
+            if page is not None and not shot.exists():
+                page.screenshot(path=str(shot))
+        traffic = sampler.stop()
+        load_after = os.getloadavg()
+        m = scrape(mapper)
+        a = scrape(f"{api}/metrics")
+        trajs = collect(s.redis_url)
+    finally:
+        stack.stop()
+    ids = sorted(
+        {k.split('"')[1] for k in m if k.startswith("hivemap_keyframe_latency_seconds_count{")}
+    )
+    rows = [{"agent": i,
+             "keyframes": m.get(f'hivemap_keyframe_latency_seconds_count{{agent="{i}"}}', 0),
+             "mapper_median_ms": 1e3 * hist_quantile(m, "hivemap_keyframe_latency_seconds",
+                                                      f'agent="{i}"', 0.5),
+             "mapper_p95_ms": 1e3 * hist_quantile(m, "hivemap_keyframe_latency_seconds",
+                                                   f'agent="{i}"', 0.95)}
+            for i in ids]  # fmt: skip
+    p95 = [r["mapper_p95_ms"] for r in rows if np.isfinite(r["mapper_p95_ms"])]
+    steady = [f["fps"] for f in fps[1:]] or [f["fps"] for f in fps]
+    return {
+        "agents": n_agents, "seconds": seconds, "viewer": with_viewer,
+        "viewer_fps": {"median": float(np.median(steady)) if steady else None,
+                       "min": float(min(steady)) if steady else None, "series": fps},
+        "mapper_latency": rows,
+        "mapper_p95_max_ms": max(p95) if p95 else None,
+        "latency_pass": bool(p95) and max(p95) <= LATENCY_BAR_MS,
+        "api_ws_connections": a.get("hivemap_api_ws_connections_total", 0.0),
+        "loadavg_1m_before_after": [load_before[0], load_after[0]],
+        "traffic": {f"{n_agents} agents": traffic},
+        "trajectories": aligned_trajectories(trajs),
+        "screenshot": str(shot.relative_to(RESULTS.parents[1])) if with_viewer else None,
+    }  # fmt: skip
+
+
+def shot_taken(shot: Path, t0: float) -> bool:
+    return shot.exists() and shot.stat().st_mtime > time.time() - (time.monotonic() - t0)
+
+
+class _no_page:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--agents", type=int, default=16)
+    ap.add_argument("--seconds", type=float, default=60.0, help="flight time per agent")
+    ap.add_argument("--no-viewer", action="store_true", help="baseline: no browser")
+    ap.add_argument("--name", default="")
+    args = ap.parse_args()
+    if not args.no_viewer and chromium_missing():
+        print(f"bench_viewer: {chromium_missing()}", file=sys.stderr)
+        return 2
+    name = args.name or f"viewer_{args.agents}" + ("_noviewer" if args.no_viewer else "")
+    r = run(args.agents, args.seconds, name, not args.no_viewer)
+    path = write_report(name, r)
+    print(table(r["mapper_latency"], ["agent", "keyframes", "mapper_median_ms", "mapper_p95_ms"]))
+    verdict = "pass" if r["latency_pass"] else "FAIL"
+    print(f"viewer fps median {r['viewer_fps']['median']}, min {r['viewer_fps']['min']}; "
+          f"mapper p95 max {r['mapper_p95_max_ms']:.1f} ms (bar {LATENCY_BAR_MS:.0f} ms: "
+          f"{verdict}); load {r['loadavg_1m_before_after']}")  # fmt: skip
+    print(f"written {path}")
+    print("plot", traffic_over_time(r["traffic"], path.with_name(f"{name}_traffic.png"),
+                                    f"Mapper traffic over time, {args.agents} agents"))  # fmt: skip
+    if r["trajectories"]:
+        print("plot", trajectories(r["trajectories"], path.with_name(f"{name}_trajectories.png"),
+                                   f"{args.agents} simulated agents"))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
