@@ -8,7 +8,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from services.agent.comm import CommModule
 from services.agent.health import HealthMeter
-from services.mapper.agent_health import DISCONNECTED_AFTER_S, AgentHealth
+from services.mapper.agent_health import DISCONNECTED_AFTER_S, MAX_AGENTS, AgentHealth
 from shared.messages import Ack, PoseUpdate
 
 
@@ -83,3 +83,8 @@ def test_cardinality_for_64_agents():
     s = _samples(h)
     series = [k for k in s if not k[0].endswith("_created")]
     assert len(series) == 64 * 9
+    # Made-up ids off the wire stop growing the table at MAX_AGENTS.
+    for i in range(MAX_AGENTS):
+        h.report(_pose(f"x-{i}"))
+    assert len(h.reports) == MAX_AGENTS and not h.report(_pose("one-more"))
+    assert h.report(_pose("agent-0"))  # known agents still report

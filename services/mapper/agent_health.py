@@ -25,6 +25,9 @@ from shared.messages import PoseUpdate
 
 # No report for this long: the agent is disconnected (agents report at 10-20 Hz).
 DISCONNECTED_AFTER_S = 3.0
+# At most this many agents get series: ids come off the wire, and a flood of made-up ones
+# must not grow the scrape without bound (4x the 64-agent team this is sized for).
+MAX_AGENTS = 256
 # hivemap_agent_state's values, and the tracking states agents send.
 STATES = {"ok": 0, "init": 1, "lost": 2, "disconnected": 3}
 
@@ -40,9 +43,13 @@ class AgentHealth(Collector):
         self._lock = threading.Lock()
         self.reports: dict[str, Report] = {}
 
-    def report(self, p: PoseUpdate, now: float | None = None) -> None:
+    def report(self, p: PoseUpdate, now: float | None = None) -> bool:
+        """Keep ``p`` as its agent's newest report; False when the table is full."""
         with self._lock:
+            if p.agent not in self.reports and len(self.reports) >= MAX_AGENTS:
+                return False
             self.reports[p.agent] = Report(p, time.monotonic() if now is None else now)
+            return True
 
     def state(self, agent: str, now: float | None = None) -> str:
         r = self.reports.get(agent)
