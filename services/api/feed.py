@@ -135,7 +135,10 @@ def diff_events(prev: dict | None, cur: dict) -> list[dict]:
     pose_of = {a["agent"]: a.get("position") for a in cur["agents"]}
     for m in cur["maps"]:
         if m["merged_into"] and not was_merged.get(m["map_id"]):
-            at = next((pose_of[a] for a in m["agents"] if pose_of.get(a)), None)
+            # Where it happened: an agent of the merged map, else any agent of the target.
+            target = next((t for t in cur["maps"] if t["map_id"] == m["merged_into"]), None)
+            near = list(m["agents"]) + (target["agents"] if target else [])
+            at = next((pose_of[a] for a in near if pose_of.get(a)), None)
             out.append({"type": "event", "kind": "merge", "t": cur["t"], "map_id": m["merged_into"],
                         "source": m["map_id"], "target": m["merged_into"], "at": at})  # fmt: skip
     merged_now = {e["target"] for e in out}
