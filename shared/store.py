@@ -480,23 +480,18 @@ class Store:
         return sorted(out)
 
     # --- reads for the viewer (the API) -----------------------------------------------
-    # Keyframe gids are (agent index << GID_ID_BITS) | id, the index in ``hm:agent:{a}``
-    # (written by services/mapper/persist.py); loop edges live in ``hm:map:{m}:loops``.
-    GID_ID_BITS = 40
-
     def map_loops(self, map_id: str) -> list[tuple[int, int]]:
-        """(query gid, candidate gid) of every loop edge of ``map_id``."""
+        """(query gid, candidate gid) of every loop edge of ``map_id``, without reading
+        the constraints themselves."""
         out = []
-        for f in self.r.hkeys(f"{k_map(map_id)}:loops"):
+        for f in self.r.hkeys(_k_map_loops(map_id)):
             q, _, c = f.decode().partition(":")
             out.append((int(q), int(c)))
         return sorted(out)
 
-    def agents_by_index(self, agents: list[str]) -> dict[int, str]:
-        p = self.r.pipeline(transaction=False)
-        for a in agents:
-            p.hget(k_agent(a), "index")
-        return {int(v): a for a, v in zip(agents, p.execute(), strict=True) if v is not None}
+    def agents_by_index(self) -> dict[int, str]:
+        """Agent index (the high bits of its gids, ``shared.ids``) -> agent id."""
+        return {int(v): k.decode() for k, v in self.r.hgetall(_AGENT_INDEX).items()}
 
     def point_sample(self, agent: str, cap: int) -> np.ndarray:
         """(n, 3) map-frame positions of at most ``cap`` of the agent's map points: all of
@@ -516,7 +511,7 @@ class Store:
         ids = self.keyframe_ids(agent)
         p = self.r.pipeline(transaction=False)
         for i in ids:
-            p.hget(k_kf(agent, i), "pose")
+            p.hget(_k_kf(agent, i), "pose")
         keep, poses = [], []
         for i, b in zip(ids, p.execute(), strict=True):
             if b is not None:

@@ -11,7 +11,8 @@ import time
 
 import numpy as np
 
-from shared.store import Store, k_mps
+from shared.ids import agent_index_of, local_id_of
+from shared.store import LivePose, Store
 
 from .models import pose_out
 
@@ -26,14 +27,11 @@ def _r(a: np.ndarray, nd: int = 3) -> list:
     return np.round(np.asarray(a, float), nd).tolist()
 
 
-def agent_status(doc: dict | None, now_ns: int) -> str:
+def agent_status(pose: LivePose | None, now_ns: int) -> str:
     """tracking | initializing | lost | disconnected, from the agent's latest pose."""
-    if doc is None:
+    if pose is None or (now_ns - pose.recv_ns) * 1e-9 > DISCONNECTED_AFTER_S:
         return "disconnected"
-    age = (now_ns - int(doc.get("recv_ns", 0))) * 1e-9
-    if age > DISCONNECTED_AFTER_S:
-        return "disconnected"
-    return {"ok": "tracking", "init": "initializing"}.get(str(doc.get("tracking")), "lost")
+    return {"ok": "tracking", "init": "initializing"}.get(pose.tracking, "lost")
 
 
 def up_direction(kf_pos: np.ndarray, R: np.ndarray, pts: np.ndarray | None = None) -> np.ndarray:
@@ -79,10 +77,9 @@ def state(store: Store) -> dict:
             po = pose_out(doc)
             out.update(position=_r(po.position), quaternion_xyzw=_r(po.quaternion_xyzw, 4),
                        fps=round(po.fps, 1), tracking=po.tracking,
-                       age_s=round((now_ns - int(doc.get("recv_ns", 0))) * 1e-9, 2))  # fmt: skip
+                       age_s=round((now_ns - doc.recv_ns) * 1e-9, 2))  # fmt: skip
         agents_out.append(out)
-    by_index = store.agents_by_index(names)
-    mask = (1 << Store.GID_ID_BITS) - 1
+    by_index = store.agents_by_index()
     maps, loops = [], {}
     for m in store.maps():
         info = store.map_info(m)
@@ -95,7 +92,7 @@ def state(store: Store) -> dict:
         edges = []
         for q, c in store.map_loops(m):
             ends = [
-                kf_pos.get((by_index.get(g >> Store.GID_ID_BITS, ""), g & mask)) for g in (q, c)
+                kf_pos.get((by_index.get(agent_index_of(g), ""), local_id_of(g))) for g in (q, c)
             ]
             if ends[0] is not None and ends[1] is not None:
                 edges.append({"id": f"{q}:{c}", "a": ends[0], "b": ends[1]})
@@ -115,7 +112,7 @@ def points(store: Store, map_id: str, cap: int = POINTS_CAP) -> dict:
     for k, a in enumerate(agents):
         share = left // (len(agents) - k)
         p = store.point_sample(a, share)
-        n_total += int(store.r.hlen(k_mps(a)))
+        n_total += int((store.agent_info(a) or {}).get("n_mp", 0))
         left -= len(p)
         parts.append(p)
     pts = np.concatenate(parts) if parts else np.zeros((0, 3))

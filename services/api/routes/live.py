@@ -19,8 +19,8 @@ import time
 import redis.asyncio as aioredis
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from shared.messages import DecodeError, unpackb
-from shared.store import POSE_CHANNEL
+from shared.messages import DecodeError
+from shared.store import POSE_CHANNEL, LivePose
 
 from .. import feed
 from ..metrics import WS_CLIENTS
@@ -45,9 +45,9 @@ async def _poses(ws: WebSocket, pubsub) -> None:
         msg = await pubsub.get_message(ignore_subscribe_messages=True, timeout=POSE_FLUSH_S)
         if msg is not None:
             try:
-                doc = unpackb(msg["data"])
+                doc = LivePose.decode(msg["data"])
                 p = pose_out(doc).model_dump()
-            except (DecodeError, KeyError, TypeError, ValueError) as e:
+            except DecodeError as e:
                 log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
                 continue
             p["status"] = feed.agent_status(doc, time.time_ns())
