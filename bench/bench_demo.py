@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import time
 import urllib.request
 from pathlib import Path
 
@@ -19,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import table, write_report  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from shared.progress import progress  # noqa: E402
 from shared.redis_server import free_port  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 
@@ -59,8 +61,12 @@ def main() -> int:
             env = {**__import__("os").environ, "HIVEMAP_ZENOH__CONNECT": json.dumps(
                 [stack.zenoh_endpoint]), "HIVEMAP_LOG_LEVEL": "WARNING"}  # fmt: skip
             procs.append((agent, seq, subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)))
-        for _, _, p in procs:
-            p.wait(args.seconds / args.speed * 3 + 120)
+        with progress("3 agents flying", args.seconds / args.speed, "s") as update:
+            t0 = time.monotonic()
+            limit = args.seconds / args.speed * 3 + 120
+            while any(p.poll() is None for *_, p in procs) and time.monotonic() - t0 < limit:
+                time.sleep(0.5)
+                update(completed=min(args.seconds / args.speed, time.monotonic() - t0))
         metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
     finally:
         for _, _, p in procs:

@@ -41,6 +41,7 @@ from services.placerec.vocabulary import Vocabulary, default_path  # noqa: E402
 from shared.camera import PinholeRadTan  # noqa: E402
 from shared.geometry import rotation_angle, se3_inv  # noqa: E402
 from shared.orb import Extractor  # noqa: E402
+from shared.progress import track  # noqa: E402
 from shared.synthetic.render import Renderer  # noqa: E402
 from shared.synthetic.world import World  # noqa: E402
 from shared.trajectory import SEQUENCES, load_euroc_gt  # noqa: E402
@@ -95,7 +96,7 @@ def main() -> int:
     t0 = time.perf_counter()
     frames = []  # (seq, index along the flight, descriptors)
     poses = []
-    for seq in SEQUENCES:
+    for seq in track(SEQUENCES, "render the database frames"):
         gt = load_euroc_gt(seq)
         for j, k in enumerate(range(args.every // 2, len(gt), args.every)):
             img, _ = renderer.render(gt.poses[k], k)
@@ -131,7 +132,7 @@ def main() -> int:
 
     # -- queries --------------------------------------------------------------------
     t_query, t_conv, t_db, hits, near_hits, n_cands = [], [], [], 0, 0, []
-    for _ in range(args.queries):
+    for _ in track(range(args.queries), "queries"):
         fi = int(rng.integers(len(frames)))
         d = perturb(frames[fi][2], rng)
         # The query revisits frame fi's place: its own covisible keyframes are the

@@ -23,6 +23,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from common import table, write_report  # noqa: E402
 
+from shared.progress import track  # noqa: E402
 from shared.synthetic.render import Renderer  # noqa: E402
 from shared.synthetic.world import World  # noqa: E402
 from shared.trajectory import SEQUENCES, load_euroc_gt  # noqa: E402
@@ -38,7 +39,7 @@ def main() -> int:
     renderer = Renderer(World(args.seed))
     orb = cv2.ORB_create(nfeatures=1000)
     rows = []
-    for seq in SEQUENCES:
+    for seq in track(SEQUENCES, "render and ORB per sequence"):
         gt = load_euroc_gt(seq)
         # Speed on consecutive frames from the middle of the flight (textures warm).
         start = len(gt) // 2

@@ -27,6 +27,7 @@ from bench_demo import scrape  # noqa: E402
 from common import table, write_report  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from shared.progress import track  # noqa: E402
 from shared.redis_server import free_port  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 from shared.store import Store, connect  # noqa: E402
@@ -127,7 +128,7 @@ def main() -> int:
     ap.add_argument("--no-server", action="store_true", help="the agent alone (issue item 1-2)")
     args = ap.parse_args()
     rows = []
-    for seq in args.seqs.split(","):
+    for seq in track(args.seqs.split(","), "sequences"):
         rows.append((run_alone if args.no_server else run)(seq, args.frames))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     name = "vo" + ("_alone" if args.no_server else "") + ("_partial" if args.frames else "")
