@@ -95,6 +95,10 @@ def test_up_serves_and_sigterm_leaves_no_orphans(tmp_path):
         left = _stop(proc)
     assert proc.returncode == 0
     assert not left, f"orphans after SIGTERM: {left}"
+    # It said where to look: the viewer, every service's metrics, Grafana under compose.
+    said = proc.stdout.read()
+    assert "viewer" in said and f"http://127.0.0.1:{port}/ " in said, said
+    assert said.count("/metrics") >= 4 and "grafana" in said, said
     # Persistent by default, under the directory it ran in.
     assert (tmp_path / "hivemap-data" / "appendonlydir").is_dir()
 
