@@ -36,7 +36,8 @@ def test_viewer_shows_the_team(tmp_path):
         with viewer_page(api + "/") as page:
             # The page is up before any agent: it must pick them up as they come.
             page.wait_for_function("window.hivemapViewer && window.hivemapViewer.frames > 5")
-            add_sim_agents(stack, 2)
+            # 30 s of flight at 2x: still flying after the merge on a loaded machine.
+            add_sim_agents(stack, 2, frames="900:2100")
             wait_for(lambda: len(get_json(f"{api}/agents")) == 2, 60, "two agents in the API")
             page.wait_for_function(
                 "Object.keys(window.hivemapViewer.drawn.poses).length == 2"
