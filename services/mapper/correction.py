@@ -164,6 +164,10 @@ def apply_correction(
     for g, T in new_T.items():
         smap.kfs[g].T_m_kf = T
         res.kfs.add(g)
+    for g in snap_kfs:
+        kf = smap.kfs.get(g)
+        if kf is not None:
+            kf.optimized = True
     # Culled keyframes are kept as (anchor, T_anchor_kf) for registration chains; the
     # relative translation scales with the anchor's neighbourhood.
     for g, (a, T_a_kf) in list(smap.culled.items()):

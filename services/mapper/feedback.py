@@ -20,6 +20,7 @@ from .registration import AgentHandler
 RECENT_KFS = 15
 MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 LOCAL_FIT_KFS = 60  # the agent's newest keyframes that say where the map puts it now
+OPTIMIZED_WEIGHT = 3
 ANCHOR_KFS = 60  # the agent's first keyframes, which fix its frame g for the whole flight
 MIN_FIT_KFS = 8
 
@@ -98,7 +99,13 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     c = a_l[:, :3, 3]
     sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
     A_m_l = umeyama(c, a_m[:, :3, 3]) if sv[1] > 0.05 * sv[0] else fit_sim3_poses(a_l, a_m)
-    S_m_l = fit_sim3_poses(T_l[-n_local:], T_m[-n_local:])
+    # Weighted towards keyframes a global optimization has settled (each counts
+    # OPTIMIZED_WEIGHT times): the newest ones still sit where registration first put
+    # them, and where the map's frontier is worse than the VO they pulled the
+    # correction off (team5, agents 1 and 2).
+    rep = np.array([OPTIMIZED_WEIGHT if k.optimized else 1 for k in kfs[-n_local:]])
+    S_m_l = fit_sim3_poses(np.repeat(T_l[-n_local:], rep, axis=0),
+                           np.repeat(T_m[-n_local:], rep, axis=0))  # fmt: skip
     if A_m_l is None or S_m_l is None:
         return None
     S_g_l = A_m_l.inverse() @ S_m_l

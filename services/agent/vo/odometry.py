@@ -277,7 +277,10 @@ class VisualOdometry:
             ids = self._local_points(with_foreign=True)
             P2, D2 = self._points(ids)
             r2, pi2, kp2 = self._predict(f, T_pred, P2, D2)
-            if r2 is not None and (res is None or r2.inliers.sum() > res.inliers.sum()):
+            # The server's points never move the pose where the motion model says the
+            # camera cannot be (a badly placed chunk must not destabilize tracking).
+            if (r2 is not None and (res is None or r2.inliers.sum() > res.inliers.sum())
+                    and self._plausible(r2, T_pred if res is None else res.T_w_c)):  # fmt: skip
                 res, pi, kp, pids, P, D = r2, pi2, kp2, ids, P2, D2
         was_lost = self.state == "lost"
         if res is None:
