@@ -1,4 +1,5 @@
-"""Global ids: one int64 names a keyframe or map point across every agent.
+"""Global ids: one int64 names a keyframe or map point across every agent; and where a
+merged map id leads.
 
 An agent's keyframe and map-point ids are its own small integers; the mapper gives each
 agent an index (``hm:agent_index`` in ``shared.store``) and the global id is
@@ -33,3 +34,14 @@ def local_id_of(g: IntOrArray) -> IntOrArray:
 def split_gid(g: int) -> tuple[int, int]:
     """(agent index, local id)."""
     return g >> ID_BITS, g & LOCAL_MASK
+
+
+def resolve_map(merged_into: dict[str, str], map_id: str) -> str:
+    """The map ``map_id`` lives on as: follows ``merged_into`` (map -> the map it was
+    merged into) to the end of the chain; a cycle (never written, but read from peers)
+    stops where it would repeat."""
+    seen = set()
+    while map_id in merged_into and map_id not in seen:
+        seen.add(map_id)
+        map_id = merged_into[map_id]
+    return map_id

@@ -32,7 +32,6 @@ import contextlib
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -50,6 +49,7 @@ from shared.messages import (
 )
 from shared.metrics import MAP_SIZE, REJECTED
 from shared.store import Store
+from shared.transport import Bus
 
 from . import persist
 from .capture import build_request, capture_map
@@ -64,9 +64,7 @@ from .merge import (
     relative_sim3,
 )
 from .metrics import CORRECTIONS, MAP_POINTS, MATCHES, MERGES, OPT_REQUESTS, QUEUE_DEPTH
-
-if TYPE_CHECKING:
-    from .service import MapperService
+from .registry import MapRegistry
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -80,13 +78,22 @@ def _spread(n: int, k: int) -> np.ndarray:
 
 
 class Collaboration:
+    """Matches, loops, merges, optimization requests and corrections on the maps of
+    ``registry`` (which alone re-points agents when maps merge); writes go to
+    ``store``, messages to ``bus`` once the service has one."""
+
     def __init__(
-        self, svc: MapperService, optimize_min_interval_s: float = 3.0, opt_share: float = 0.1
+        self,
+        registry: MapRegistry,
+        store: Store,
+        optimize_min_interval_s: float = 3.0,
+        opt_share: float = 0.1,
     ) -> None:
-        self.svc = svc
-        self.jobs = JobQueue(svc.store.r)
+        self.reg = registry
+        self.store = store
+        self.jobs = JobQueue(store.r)
+        self.bus: Bus | None = None
         self.loops: dict[str, list[LoopConstraint]] = {}
-        self.merged_into: dict[str, str] = {}
         self.min_interval = optimize_min_interval_s
         self._dirty: dict[str, str] = {}  # map -> reason
         self._last_request: dict[str, float] = {}
@@ -111,32 +118,18 @@ class Collaboration:
     # --- state --------------------------------------------------------------------------
     def load(self) -> None:
         """Loop constraints from Redis, and the loop edges they make."""
-        for map_id, smap in self.svc.maps.items():
-            for q, c, S in self.svc.store.loops(map_id):
+        for map_id, smap in self.reg.maps.items():
+            for q, c, S in self.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
 
-    def current_map(self, map_id: str) -> str:
-        """The map ``map_id`` lives on as, following merges (bounded: no cycles)."""
-        for _ in range(len(self.merged_into)):
-            if map_id not in self.merged_into:
-                break
-            map_id = self.merged_into[map_id]
-        return map_id
-
-    def map_of_kf(self, g: int) -> str | None:
-        for map_id, smap in list(self.svc.maps.items()):
-            if g in smap.kfs or g in smap.culled:
-                return map_id
-        return None
-
     # --- keyframe events ---------------------------------------------------------------
     def kf_event(self, map_id: str, g: int) -> KeyframeEvent | None:
-        smap = self.svc.maps.get(map_id)
+        smap = self.reg.get(map_id)
         kf = smap.kfs.get(g) if smap else None
         if kf is None:
             return None
-        h = self.svc.handlers.get(kf.agent)
+        h = self.reg.handler(kf.agent)
         fx = h.camera.fx if h is not None else EUROC_FX
         return KeyframeEvent(
             map_id, kf.agent, g, kf.id, kf.stamp_ns, kf.T_m_kf.copy(), float(fx),
@@ -146,7 +139,7 @@ class Collaboration:
         )  # fmt: skip
 
     def publish_events(self, map_id: str, gids: list[int]) -> None:
-        bus = self.svc.bus
+        bus = self.bus
         if bus is None:
             return
         for g in gids:
@@ -166,7 +159,7 @@ class Collaboration:
 
     def on_match(self, m: Match) -> str | None:
         """Apply a verified match; returns "merge", "loop" or None (ignored)."""
-        qm, cm = self.map_of_kf(m.query_gid), self.map_of_kf(m.cand_gid)
+        qm, cm = self.reg.map_of_kf(m.query_gid), self.reg.map_of_kf(m.cand_gid)
         if qm is None or cm is None:
             REJECTED.labels(SERVICE, keys.MATCH, "unknown_kf").inc()
             log.warning("match names a keyframe no map holds: %d / %d", m.query_gid, m.cand_gid)
@@ -175,16 +168,9 @@ class Collaboration:
             return self._loop(qm, m)
         return self._merge(qm, cm, m)
 
-    def _locks(self, *map_ids: str):
-        return [self.svc.actor(mid).lock for mid in sorted(set(map_ids))]
-
     def _loop(self, map_id: str, m: Match) -> str | None:
-        svc = self.svc
-        locks = self._locks(map_id)
-        for lk in locks:
-            lk.acquire()
-        try:
-            smap = svc.maps[map_id]
+        with self.reg.lock(map_id):
+            smap = self.reg.maps[map_id]
             q, c = m.query_gid, m.cand_gid
             if q not in smap.kfs or c not in smap.kfs:
                 return None
@@ -200,9 +186,6 @@ class Collaboration:
             lc = LoopConstraint(q, c, m.S_q_c.copy())
             self.loops.setdefault(map_id, []).append(lc)
             self._persist(map_id, {}, set(), [lc])  # loop edges live in the loops hash
-        finally:
-            for lk in reversed(locks):
-                lk.release()
         self._fuse_in_slices(map_id, m)
         MATCHES.labels("loop").inc()
         log.info("loop closed in %s: %d <-> %d (%d inliers)", map_id, q, c, m.inliers)
@@ -218,10 +201,10 @@ class Collaboration:
         mp_q, mp_c = m.mp_q[keep], m.mp_c[keep]
         aliases: dict[int, int] = {}
         for i in range(0, len(mp_q), self.fuse_slice):
-            self.svc.wait_for_batches()
-            map_id = self.current_map(map_id)  # merged away meanwhile: follow it
-            with self.svc.actor(map_id).lock:
-                smap = self.svc.maps.get(map_id)
+            self.reg.wait_for_batches()
+            map_id = self.reg.resolve(map_id)  # merged away meanwhile: follow it
+            with self.reg.lock(map_id):
+                smap = self.reg.get(map_id)
                 if smap is None:
                     return
                 fres = fuse_matched(smap, mp_q[i : i + self.fuse_slice],
@@ -244,12 +227,8 @@ class Collaboration:
         return any(kfs[n].loop_edges & nc for n in nq if n in kfs)
 
     def _merge(self, qm: str, cm: str, m: Match) -> str | None:
-        svc = self.svc
-        locks = self._locks(qm, cm)
-        for lk in locks:
-            lk.acquire()
-        try:
-            Q, C = svc.maps[qm], svc.maps[cm]
+        with self.reg.lock(qm, cm):
+            Q, C = self.reg.maps[qm], self.reg.maps[cm]
             if m.query_gid not in Q.kfs or m.cand_gid not in C.kfs:
                 return None
             S_Q_C = map_to_map(Q.kfs[m.query_gid].T_m_kf, m.S_q_c, C.kfs[m.cand_gid].T_m_kf)
@@ -259,10 +238,7 @@ class Collaboration:
             else:
                 target, source, S_t_s = Q, C, S_Q_C
             moved = move_map(target, source, S_t_s)
-            for h in svc.handlers.values():
-                if h.smap is source:
-                    h.smap = target
-                    h.S_m_l = S_t_s @ h.S_m_l
+            self.reg.merge(source.map_id, target.map_id, S_t_s)
             add_loop_edge(target, m.query_gid, m.cand_gid)
             fres = fuse_matched(target, m.mp_q, m.mp_c)
             # Both sides are in the target's units now: the match's scale is spent on the
@@ -272,23 +248,17 @@ class Collaboration:
             lc = LoopConstraint(m.query_gid, m.cand_gid, S_q_c)
             old = self.loops.pop(source.map_id, [])
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
-            self.merged_into[source.map_id] = target.map_id
-            svc.actors[source.map_id].retired_into = target.map_id
             self._persist_merge(target.map_id, source.map_id, moved.moved_kfs, moved.moved_mps)
             self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
-            svc.maps.pop(source.map_id, None)
-        finally:
-            for lk in reversed(locks):
-                lk.release()
         MATCHES.labels("merge").inc()
         MERGES.inc()
         for g in (MAP_SIZE, MAP_POINTS, QUEUE_DEPTH):
             # A retired map's gauges would report its last size forever.
             with contextlib.suppress(KeyError):
                 g.remove(source.map_id)
-        if svc.bus is not None:
+        if self.bus is not None:
             note = MapMerged(source.map_id, target.map_id, S_t_s.matrix(), time.time_ns())
-            svc.bus.put(keys.map_merged(source.map_id), note.encode())
+            self.bus.put(keys.map_merged(source.map_id), note.encode())
         log.info("merged map %s into %s (scale %.4f, %d keyframes moved)", source.map_id,
                  target.map_id, S_t_s.s, len(moved.moved_kfs))  # fmt: skip
         self.mark_dirty(target.map_id, "merge")
@@ -296,12 +266,11 @@ class Collaboration:
 
     def _persist(self, map_id: str, aliases: dict[int, int], changed: set[int],
                  loops: list[LoopConstraint]) -> None:  # fmt: skip
-        svc = self.svc
-        smap = svc.maps[map_id]
-        pipe = svc.store.pipeline()
+        smap = self.reg.maps[map_id]
+        pipe = self.store.pipeline()
         Store.put_aliases(pipe, aliases)
-        svc.aliases.update(aliases)
-        persist.delete_points(pipe, set(aliases), svc.names)
+        self.reg.aliases.update(aliases)
+        persist.delete_points(pipe, set(aliases), self.reg.names)
         for g in changed:
             kf = smap.kfs.get(g)
             if kf is not None:
@@ -310,23 +279,21 @@ class Collaboration:
         pipe.execute()
 
     def _persist_merge(self, target: str, source: str, kfs: list[int], mps: list[int]) -> None:
-        svc = self.svc
-        smap = svc.maps[target]
-        pipe = svc.store.pipeline()
+        smap = self.reg.maps[target]
+        pipe = self.store.pipeline()
         for g in kfs:
             kf = smap.kfs[g]
             persist.write_kf_state(pipe, kf, target)
             Store.add_map_keyframe(pipe, target, kf.agent, kf.id)
-        persist.write_points(pipe, smap, mps, svc.names)
-        for h in svc.handlers.values():
-            if h.smap is smap:
-                persist.write_handler(pipe, h)
-                for kid in list(h.removed):
-                    # move_map rescaled the culled anchors (relative poses in map units).
-                    entry = smap.culled.get(h.kf_gid(kid))
-                    if entry is not None:
-                        h.removed[kid] = entry
-                        Store.put_removed(pipe, h.agent, kid, *entry)
+        persist.write_points(pipe, smap, mps, self.reg.names)
+        for h in self.reg.handlers_of(target):
+            persist.write_handler(pipe, h)
+            for kid in list(h.removed):
+                # move_map rescaled the culled anchors (relative poses in map units).
+                entry = smap.culled.get(h.kf_gid(kid))
+                if entry is not None:
+                    h.removed[kid] = entry
+                    Store.put_removed(pipe, h.agent, kid, *entry)
         Store.retire_map(pipe, source, target)
         pipe.execute()
 
@@ -353,32 +320,32 @@ class Collaboration:
         with self._lock:
             out = []
             for map_id, reason in list(self._dirty.items()):
-                map_id = self.merged_into.get(map_id, map_id)
+                map_id = self.reg.resolve(map_id)
                 cost = self._copy_s.get(map_id, 0.0) + self._corr_s.get(map_id, 0.0)
                 interval = max(self.min_interval, cost / self.opt_share)
                 if now - self._last_request.get(map_id, -1e9) >= interval:
                     out.append((map_id, reason))
                     self._dirty.pop(map_id, None)
-            for map_id in [m for m in self._dirty if m in self.merged_into]:
+            for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
                 self._dirty.pop(map_id, None)
             return out
 
     def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
-        svc = self.svc
-        smap = svc.maps.get(map_id)
+        reg = self.reg
+        smap = reg.get(map_id)
         if smap is None or len(smap.kfs) < 3:
             return None
         t0 = time.perf_counter()
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
         with self._opt_lock:
-            svc.wait_for_batches()
-            with svc.actor(map_id).lock:
+            reg.wait_for_batches()
+            with reg.lock(map_id):
                 loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                          if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                 cap = capture_map(smap, loops)
             t1 = time.perf_counter()
-            req = build_request(cap, reason, pause=svc.wait_for_batches)
+            req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
         self._last_request[map_id] = time.monotonic()
         with self._lock:
@@ -410,8 +377,8 @@ class Collaboration:
         return self.on_correction(c)
 
     def on_correction(self, c: CorrectionMsg) -> bool:
-        svc = self.svc
-        smap = svc.maps.get(c.map_id)
+        reg = self.reg
+        smap = reg.get(c.map_id)
         if smap is None:
             # The map was merged away meanwhile: a request for the merged map follows.
             REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
@@ -426,20 +393,17 @@ class Collaboration:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
         t0 = time.perf_counter()
         with self._opt_lock:
-            svc.wait_for_batches()
-            with svc.actor(c.map_id).lock:
+            reg.wait_for_batches()
+            with reg.lock(c.map_id):
                 res = apply_correction(smap, c, snap_poses)
                 changed_kfs = res.kfs | res.kfs_propagated
                 for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True):
-                    kf, p = smap.kfs.get(kg), smap.mps.get(mg)
-                    if kf is not None and p is not None and kg in p.obs and len(p.obs) > 2:
-                        smap._unobserve(kf, p.obs[kg])
+                    if smap.drop_observation(kg, mg):
                         changed_kfs.add(kg)
                 self._rescale_handlers(smap, c)
-                pipe = svc.store.pipeline()
-                for h in svc.handlers.values():
-                    if h.smap is smap:
-                        persist.write_handler(pipe, h)
+                pipe = self.store.pipeline()
+                for h in reg.handlers_of(c.map_id):
+                    persist.write_handler(pipe, h)
                 pipe.execute()
             self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         with self._lock:
@@ -457,32 +421,29 @@ class Collaboration:
         map's lock and serialized from the live map: batches get the lock between slices
         (a whole 2000-keyframe map takes about a second to write), and a slice never
         overwrites a newer value an agent's batch stored meanwhile."""
-        svc = self.svc
-        lock = svc.actor(map_id).lock
+        reg = self.reg
         n_kf, n_mp = self.persist_chunk // 20, self.persist_chunk
         while kfs or mps:
-            svc.wait_for_batches()
+            reg.wait_for_batches()
             kf_part, kfs = kfs[:n_kf], kfs[n_kf:]
             mp_part, mps = (mps[:n_mp], mps[n_mp:]) if not kf_part else ([], mps)
-            with lock:
-                smap = svc.maps.get(map_id)
+            with reg.lock(map_id):
+                smap = reg.get(map_id)
                 if smap is None:
                     return  # merged away: the merge stored the moved map whole
-                pipe = svc.store.pipeline()
+                pipe = self.store.pipeline()
                 for g in kf_part:
                     kf = smap.kfs.get(g)
                     if kf is not None:
                         persist.write_kf_state(pipe, kf, map_id)
-                persist.write_points(pipe, smap, mp_part, svc.names)
+                persist.write_points(pipe, smap, mp_part, reg.names)
                 pipe.execute()
 
     def _rescale_handlers(self, smap, corr) -> None:
         """Keyframes chained after the correction continue at the corrected scale of
         the agent's newest keyframe (its relative translations are in agent units)."""
         scale = dict(zip(corr.kf_gids.tolist(), corr.kf_scale.tolist(), strict=True))
-        for h in self.svc.handlers.values():
-            if h.smap is not smap:
-                continue
+        for h in self.reg.handlers_of(smap.map_id):
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)

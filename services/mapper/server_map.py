@@ -130,6 +130,15 @@ class ServerMap:
         self.version += 1
         return True
 
+    def drop_observation(self, kf_gid: int, mp_gid: int) -> bool:
+        """Remove keyframe ``kf_gid``'s observation of point ``mp_gid`` (an outlier the
+        optimizer found), unless it is one of the point's last two."""
+        kf, p = self.kfs.get(kf_gid), self.mps.get(mp_gid)
+        if kf is None or p is None or kf_gid not in p.obs or len(p.obs) <= 2:
+            return False
+        self._unobserve(kf, p.obs[kf_gid])
+        return True
+
     def _unobserve(self, kf: ServerKeyframe, j: int) -> None:
         p = self.mps.get(int(kf.mp[j]))
         kf.mp[j] = NO_MP

@@ -52,6 +52,7 @@ from .locks import MapLock
 from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
 from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
+from .registry import MapRegistry
 from .server_map import ServerMap, digest
 
 log = logging.getLogger(__name__)
@@ -76,8 +77,10 @@ class MapActor:
     """Owns one server map: applies batches in order, stores, acks; when idle, culls
     redundant keyframes and sends feedback."""
 
-    def __init__(self, svc: MapperService, smap: ServerMap) -> None:
+    def __init__(self, svc: MapperService, smap: ServerMap, stop: threading.Event) -> None:
         self.svc = svc
+        self.reg = svc.registry
+        self.stop = stop
         self.smap = smap
         self.q: queue.Queue = queue.Queue()
         self.lock = MapLock(smap.map_id)
@@ -95,7 +98,7 @@ class MapActor:
 
     def _run(self) -> None:
         svc = self.svc
-        while not svc._stop.is_set():
+        while not self.stop.is_set():
             try:
                 h, batch, recv_ns, key = self.q.get(timeout=0.05)
             except queue.Empty:
@@ -106,7 +109,7 @@ class MapActor:
                 continue
             if h.smap is not self.smap:
                 # The agent's map was merged into another after this batch was queued.
-                svc.actor(h.map_id).q.put((h, batch, recv_ns, key))
+                self.reg.actor(h.map_id).q.put((h, batch, recv_ns, key))
                 continue
             t_batch = time.monotonic()
             try:
@@ -157,11 +160,11 @@ class MapActor:
         by_map: dict[str, list[int]] = {}
         for map_id, g in events:
             # Merged away since: the keyframe moved along.
-            by_map.setdefault(self.svc.collab.current_map(map_id), []).append(g)
+            by_map.setdefault(self.reg.resolve(map_id), []).append(g)
         try:
             for map_id, gids in by_map.items():
-                if map_id in self.svc.maps:
-                    with self.svc.actor(map_id).lock:
+                if self.reg.is_local(map_id):
+                    with self.reg.lock(map_id):
                         self.svc.collab.publish_events(map_id, gids)
         except Exception:
             log.exception("keyframe events failed")
@@ -169,18 +172,18 @@ class MapActor:
     def _idle(self) -> None:
         # Idle work holds the GIL for milliseconds at a time: it waits while any map has
         # a batch queued, so it never slows down another agent's registration.
-        if self.svc.batches_waiting():
+        if self.reg.batches_waiting():
             return
         # One keyframe's fusion at a time (~10-30 ms in a dense merged map), so a batch
         # that arrives meanwhile waits for at most one of them, not for the whole backlog.
         try:
-            while not self.svc.batches_waiting():
+            while not self.reg.batches_waiting():
                 with self.lock:
                     if not self.svc.fuse(self.smap, max_kfs=1):
                         break
         except Exception:
             log.exception("point fusion failed")
-        if self.svc.batches_waiting():
+        if self.reg.batches_waiting():
             return
         # One rejection round per change of the map, not one per 50 ms poll (with 8
         # agents, idle rounds on unchanged maps took most of the mapper's CPU).
@@ -189,12 +192,7 @@ class MapActor:
         self._feedback()
 
     def _shared(self) -> bool:
-        agents = 0
-        for h in list(self.svc.handlers.values()):
-            agents += h.smap is self.smap
-            if agents > 1:
-                return True
-        return False
+        return self.reg.n_agents(self.smap.map_id) > 1
 
     def _cull_round(self) -> None:
         if not self.svc.settings.mapper.redundancy:
@@ -221,7 +219,7 @@ class MapActor:
         # half busy, each agent gets it at a quarter of its rate.
         slow = self.load() > 0.5
         try:
-            self.svc.send_feedback(self.smap, should_yield=self.svc.batches_waiting,
+            self.svc.send_feedback(self.smap, should_yield=self.reg.batches_waiting,
                                    rate_factor=0.25 if slow else 1.0)  # fmt: skip
         except Exception:
             log.exception("feedback failed")
@@ -232,28 +230,35 @@ class MapperService:
         self.settings = settings
         self.params = params_from(settings)
         self.store = Store(connect(settings.redis_url))
-        self.handlers: dict[str, AgentHandler] = {}
-        self.maps: dict[str, ServerMap] = {}
-        self.actors: dict[str, MapActor] = {}
-        self.aliases: dict[int, int] = {}
-        self.names: dict[int, str] = {}
         self._stop = threading.Event()
+        self.registry = MapRegistry(self._new_actor)
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
         self.session = None
         self.bus: Bus | None = None
         self._fb_last: dict[str, float] = {}
         self._fb_sent: dict[str, set[int]] = {}
-        self.collab = Collaboration(self, settings.mapper.optimize_min_interval_s)
+        self.collab = Collaboration(self.registry, self.store,
+                                    settings.mapper.optimize_min_interval_s)  # fmt: skip
 
-    # --- state ------------------------------------------------------------------------
+    # --- state (owned by the registry; these read it) ------------------------------------
+    @property
+    def maps(self) -> dict[str, ServerMap]:
+        return self.registry.maps
+
+    @property
+    def handlers(self) -> dict[str, AgentHandler]:
+        return self.registry.handlers()
+
+    @property
+    def names(self) -> dict[int, str]:
+        return self.registry.names
+
     def load(self) -> None:
-        self.maps, self.handlers = persist.load_all(self.store, self.params)
-        self.names = self.store.agent_names()
+        maps, handlers = persist.load_all(self.store, self.params)
+        self.registry.load(maps, handlers, self.store.agent_names())
         self.collab.load()
-        for h in self.handlers.values():
-            self.aliases.update(h.aliases)
-            h.aliases = self.aliases
+        for h in handlers.values():
             log.info("resumed agent %s: map %s, %d keyframes", h.agent, h.map_id,
                      sum(1 for k in h.smap.kfs.values() if k.agent == h.agent),
                      extra={"agent": h.agent})  # fmt: skip
@@ -263,35 +268,32 @@ class MapperService:
     ) -> AgentHandler:
         """The agent's handler, created on first contact with a map of its own, or
         in ``map_id`` through ``S_m_l`` (an agent joining a known map)."""
-        h = self.handlers.get(agent)
+        reg = self.registry
+        h = reg.handler(agent)
         if h is not None:
             return h
         with self._lock:
-            h = self.handlers.get(agent)
+            h = reg.handler(agent)
             if h is None:
                 idx = self.store.agent_index(agent)
-                self.names[idx] = agent
-                map_id = map_id or initial_map_id(agent)
-                smap = self.maps.setdefault(map_id, ServerMap(map_id))
+                reg.names[idx] = agent
+                smap = reg.ensure_map(map_id or initial_map_id(agent))
                 h = AgentHandler(agent, idx, smap, S_m_l or Sim3.identity(), self.params)
-                h.aliases = self.aliases
+                h.aliases = reg.aliases
                 pipe = self.store.pipeline()
                 persist.write_handler(pipe, h, new=True)
                 pipe.execute()
-                self.handlers[agent] = h
+                reg.add_handler(h)
                 log.info("new agent %s with map %s", agent, map_id, extra={"agent": agent})
         return h
 
     def actor(self, map_id: str) -> MapActor:
-        a = self.actors.get(map_id)
-        if a is None:
-            with self._lock:
-                a = self.actors.get(map_id)
-                if a is None:
-                    a = MapActor(self, self.maps[map_id])
-                    self.actors[map_id] = a
-                    if self.session is not None:
-                        a.start()
+        return self.registry.actor(map_id)
+
+    def _new_actor(self, smap: ServerMap) -> MapActor:
+        a = MapActor(self, smap, self._stop)
+        if self.session is not None:
+            a.start()
         return a
 
     # --- processing (transport-free parts are called directly by tests) -----------------
@@ -335,7 +337,7 @@ class MapperService:
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
             if res.new_kfs:
-                a = self.actors.get(h.map_id)
+                a = self.registry.actors.get(h.map_id)
                 if a is None or not a.thread.is_alive():
                     self.collab.publish_events(h.map_id, res.new_kfs)
                 else:
@@ -352,27 +354,12 @@ class MapperService:
         PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
         return ack
 
-    def batches_waiting(self) -> bool:
-        """Whether any map actor has a keyframe batch queued."""
-        return any(a.q.qsize() for a in list(self.actors.values()))
-
-    def wait_for_batches(self, max_s: float = 1.0) -> None:
-        """Background work (map copies, corrections, loop fusion) calls this between
-        its steps: it sleeps while keyframe batches are queued, so the actors have the
-        GIL to themselves then. A lock alone would not do it: a thread that releases the
-        map's lock and takes it again at once usually wins over the actor it woke, and a
-        CPU-bound thread off the lock still takes half the GIL. ``max_s`` bounds the
-        wait, so background work still progresses under sustained load."""
-        end = time.monotonic() + max_s
-        while self.batches_waiting() and time.monotonic() < end:
-            time.sleep(0.002)
-
     def fuse(self, smap: ServerMap, max_kfs: int | None = None) -> int:
         """Point fusion for keyframes registered since the last call (idle work, so it
         never sits between a batch and its ack, nor between two agents' batches).
         Returns how many keyframes were processed (at most ``max_kfs``)."""
         n = 0
-        for h in [h for h in self.handlers.values() if h.smap is smap and h.to_fuse]:
+        for h in [h for h in self.registry.handlers_of(smap.map_id) if h.to_fuse]:
             left = None if max_kfs is None else max_kfs - n
             if left is not None and left <= 0:
                 break
@@ -386,7 +373,7 @@ class MapperService:
 
     def cull(self, smap: ServerMap, rng: random.Random) -> int:
         """One round of redundant-keyframe rejection on ``smap``."""
-        mine = [h for h in self.handlers.values() if h.smap is smap]
+        mine = self.registry.handlers_of(smap.map_id)
         protected = set()
         for h in mine:
             for i in (h.kf_ref, h.latest_kf, h.first_kf):
@@ -427,14 +414,15 @@ class MapperService:
             return
         m = self.settings.mapper
         now = time.monotonic()
-        for h in [h for h in self.handlers.values() if h.smap is smap]:
+        for h in self.registry.handlers_of(smap.map_id):
             if should_yield is not None and should_yield():
                 return
             if m.feedback_k <= 0 or now - self._fb_last.get(h.agent, -1e9) < 1.0 / (
                 m.feedback_rate_hz * rate_factor
             ):
                 continue
-            with self.actors[smap.map_id].lock if smap.map_id in self.actors else _null():
+            a = self.registry.actors.get(smap.map_id)
+            with a.lock if a else _null():
                 sent = self._fb_sent.setdefault(h.agent, set())
                 chunk = build_chunk(h, m.feedback_k, sent, time.time_ns(), self.names,
                                     m.feedback_correction_kfs)  # fmt: skip
@@ -463,7 +451,7 @@ class MapperService:
         return p
 
     def store_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
-        h = self.handlers.get(p.agent)
+        h = self.registry.handler(p.agent)
         if h is None:
             return None  # no keyframe yet: no map frame to place it in
         T = h.pose_of(p.kf_ref, p.T_ref_c)
@@ -476,14 +464,14 @@ class MapperService:
     def state_digest(self) -> dict:
         """Digest of every map and agent handler (answered on ``hivemap/mapper/state``)."""
         maps = {}
-        for map_id, smap in list(self.maps.items()):
-            a = self.actors.get(map_id)
+        for map_id, smap in list(self.registry.maps.items()):
+            a = self.registry.actors.get(map_id)
             with a.lock if a else _null():
                 maps[map_id] = digest(smap)
         agents = {
             h.agent: {"map": h.map_id, "S_m_l": h.S_m_l.to_array().round(12).tolist(),
                       "lam": round(h.lam, 12), "removed": sorted(h.removed)}
-            for h in list(self.handlers.values())
+            for h in self.registry.handlers().values()
         }  # fmt: skip
         return {"maps": maps, "agents": agents}
 
@@ -498,8 +486,9 @@ class MapperService:
         self.load()
         self.session = open_session(self.settings.zenoh)
         self.bus = Bus(self.session, SERVICE, self.settings.inject)
-        for map_id in list(self.maps):
-            self.actor(map_id)  # starts its thread now that the session is open
+        self.collab.bus = self.bus
+        for map_id in list(self.registry.maps):
+            self.registry.actor(map_id)  # starts its thread now that the session is open
         self._queryable = self.session.declare_queryable(keys.MAPPER_STATE, self._on_state_query)
         self.kf_q = self.bus.subscribe(keys.ALL_AGENT_KF)
         self.pose_q = self.bus.subscribe(keys.ALL_AGENT_POSE, maxsize=256)
@@ -546,7 +535,7 @@ class MapperService:
                 items: list[Received] = [self.pose_q.get(timeout=0.2)]
             except queue.Empty:
                 continue
-            self.wait_for_batches(max_s=0.1)
+            self.registry.wait_for_batches(max_s=0.1)
             items += get_all(self.pose_q)
             # Every message is decoded (bad ones are counted); the newest good one per
             # agent is stored.
@@ -569,7 +558,7 @@ class MapperService:
         self._stop.set()
         for t in self._threads:
             t.join(timeout=5)
-        for a in self.actors.values():
+        for a in list(self.registry.actors.values()):
             if a.thread.is_alive():
                 a.thread.join(timeout=5)
         UP.labels(SERVICE).set(0)

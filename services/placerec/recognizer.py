@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry import se3_inv
+from shared.ids import resolve_map
 from shared.messages import KeyframeEvent, Match
 
 from .database import ConsistencyChecker, KeyframeDatabase
@@ -91,11 +92,7 @@ class PlaceRecognizer:
 
     # --- bookkeeping -------------------------------------------------------------------
     def resolve(self, map_id: str) -> str:
-        seen = set()
-        while map_id in self.merged_into and map_id not in seen:
-            seen.add(map_id)
-            map_id = self.merged_into[map_id]
-        return map_id
+        return resolve_map(self.merged_into, map_id)
 
     def on_merged(self, source: str, target: str) -> int:
         """Map ``source`` is now part of ``target``."""

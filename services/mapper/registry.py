@@ -1,0 +1,162 @@
+"""The one owner of the mapper's state (COVINS's map manager is the model).
+
+:class:`MapRegistry` alone holds the server maps, the agent handlers (indexed by the
+map they register into), one actor per map (its thread and lock), the merge chains
+between map ids, the fused-point aliases and the agent names. Everything else asks it:
+the service's dispatch, collaboration (merges, loops, corrections), persistence and
+feedback get maps, handlers and locks from here, and only :meth:`MapRegistry.merge`
+re-points agents from one map to another.
+
+Locks: :meth:`lock` takes the actors' locks of several maps in map-id order, so two
+merges never deadlock. Merge chains: a map merged into another keeps resolving to the
+survivor (:meth:`resolve`, built on ``shared.ids.resolve_map`` which place recognition
+uses too).
+
+Maps other processes own: today this process holds every map it has heard of. A map is
+*local* when it is in :attr:`maps`; :meth:`resolve` and :meth:`is_local` are the two
+questions callers ask about a map id, so an ownership lease per map (a Redis key with a
+TTL the owning mapper renews) attaches here: :meth:`is_local` would check the lease,
+and a batch for a map held elsewhere would be forwarded instead of queued.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
+
+from shared.geometry import Sim3
+from shared.ids import resolve_map
+
+from .registration import AgentHandler
+from .server_map import ServerMap
+
+if TYPE_CHECKING:
+    from .service import MapActor
+
+
+class MapRegistry:
+    def __init__(self, make_actor: Callable[[ServerMap], MapActor]) -> None:
+        self._make_actor = make_actor
+        self.maps: dict[str, ServerMap] = {}
+        self._handlers: dict[str, AgentHandler] = {}
+        self._by_map: dict[str, set[str]] = {}  # map id -> agents registering into it
+        self.actors: dict[str, MapActor] = {}
+        self.merged_into: dict[str, str] = {}
+        self.aliases: dict[int, int] = {}  # fused point gid -> surviving gid (every handler's)
+        self.names: dict[int, str] = {}  # agent index -> agent id
+        self._lock = threading.Lock()
+
+    # --- maps --------------------------------------------------------------------------
+    def resolve(self, map_id: str) -> str:
+        """The map ``map_id`` lives on as, following merges."""
+        return resolve_map(self.merged_into, map_id)
+
+    def is_local(self, map_id: str) -> bool:
+        return map_id in self.maps
+
+    def get(self, map_id: str) -> ServerMap | None:
+        return self.maps.get(map_id)
+
+    def ensure_map(self, map_id: str) -> ServerMap:
+        with self._lock:
+            return self.maps.setdefault(map_id, ServerMap(map_id))
+
+    def map_of_kf(self, g: int) -> str | None:
+        for map_id, smap in list(self.maps.items()):
+            if g in smap.kfs or g in smap.culled:
+                return map_id
+        return None
+
+    # --- agents ------------------------------------------------------------------------
+    def handler(self, agent: str) -> AgentHandler | None:
+        return self._handlers.get(agent)
+
+    def handlers(self) -> dict[str, AgentHandler]:
+        """Every agent's handler (a copy: safe to iterate while agents join)."""
+        return dict(self._handlers)
+
+    def add_handler(self, h: AgentHandler) -> None:
+        h.aliases = self.aliases
+        with self._lock:
+            self._handlers[h.agent] = h
+            self._by_map.setdefault(h.map_id, set()).add(h.agent)
+
+    def handlers_of(self, map_id: str) -> list[AgentHandler]:
+        """The agents registering into ``map_id``."""
+        with self._lock:
+            agents = sorted(self._by_map.get(map_id, ()))
+        return [self._handlers[a] for a in agents]
+
+    def n_agents(self, map_id: str) -> int:
+        return len(self._by_map.get(map_id, ()))
+
+    def load(self, maps: dict[str, ServerMap], handlers: dict[str, AgentHandler],
+             names: dict[int, str]) -> None:  # fmt: skip
+        """State rebuilt from the store (before any actor runs)."""
+        self.maps.update(maps)
+        self.names.update(names)
+        for h in handlers.values():
+            self.aliases.update(h.aliases)
+        for h in handlers.values():
+            self.add_handler(h)
+
+    # --- actors and locks --------------------------------------------------------------
+    def actor(self, map_id: str) -> MapActor:
+        a = self.actors.get(map_id)
+        if a is None:
+            with self._lock:
+                a = self.actors.get(map_id)
+                if a is None:
+                    a = self._make_actor(self.maps[map_id])
+                    self.actors[map_id] = a
+        return a
+
+    @contextlib.contextmanager
+    def lock(self, *map_ids: str) -> Iterator[None]:
+        """The maps' actor locks, taken in map-id order (no lock-order deadlock)."""
+        locks = [self.actor(m).lock for m in sorted(set(map_ids))]
+        for lk in locks:
+            lk.acquire()
+        try:
+            yield
+        finally:
+            for lk in reversed(locks):
+                lk.release()
+
+    def batches_waiting(self) -> bool:
+        """Whether any map actor has a keyframe batch queued."""
+        return any(a.q.qsize() for a in list(self.actors.values()))
+
+    def wait_for_batches(self, max_s: float = 1.0) -> None:
+        """Background work (map copies, corrections, loop fusion) calls this between
+        its steps: it sleeps while keyframe batches are queued, so the actors have the
+        GIL to themselves then. A lock alone would not do it: a thread that releases the
+        map's lock and takes it again at once usually wins over the actor it woke, and a
+        CPU-bound thread off the lock still takes half the GIL. ``max_s`` bounds the
+        wait, so background work still progresses under sustained load."""
+        end = time.monotonic() + max_s
+        while self.batches_waiting() and time.monotonic() < end:
+            time.sleep(0.002)
+
+    # --- merges ------------------------------------------------------------------------
+    def merge(self, source: str, target: str, S_t_s: Sim3) -> list[AgentHandler]:
+        """Map ``source`` (already moved into ``target`` by ``merge.move_map``) is gone:
+        its agents register into ``target`` through ``S_t_s``, its actor forwards what
+        it still has queued and stops, and ``source`` resolves to ``target``. Called
+        with both maps locked. Returns the agents moved."""
+        tmap = self.maps[target]
+        with self._lock:
+            moved = [self._handlers[a] for a in sorted(self._by_map.pop(source, ()))]
+            self._by_map.setdefault(target, set()).update(h.agent for h in moved)
+        for h in moved:
+            h.smap = tmap
+            h.S_m_l = S_t_s @ h.S_m_l
+        self.merged_into[source] = target
+        a = self.actors.get(source)
+        if a is not None:
+            a.retired_into = target
+        self.maps.pop(source, None)
+        return moved
