@@ -291,7 +291,8 @@ def main() -> None:
     # The 10 s target covers PGO and BA; keep a little for BA's own setup and readout.
     budget = args.budget if args.budget is not None else max(0.5, 9.5 - pgo_total)
     t0 = time.perf_counter()
-    ba = bundle_adjust(after_pgo, BAParams(time_budget_s=budget, ordering=args.ordering))
+    ba = bundle_adjust(after_pgo, BAParams(max_iters=20, time_budget_s=budget,
+                                           ordering=args.ordering))  # fmt: skip
     t_ba = time.perf_counter() - t0
 
     rp_vo = reprojection(snap.T_m_kf, snap.mp_pos, snap)

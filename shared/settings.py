@@ -7,6 +7,8 @@ no module holds a global instance.
 
 from __future__ import annotations
 
+from typing import Any
+
 from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
@@ -14,6 +16,13 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 # the two must agree, or an agent flies a whole mission beside a server that never
 # sees it.
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+def default_of(group: type[BaseModel], name: str) -> Any:
+    """The default of a settings field. The services' ``*Params`` dataclasses take the
+    defaults of their settings-backed fields from here, and their ``from_settings``
+    builds them from a loaded group, so each default is written once, in this module."""
+    return group.model_fields[name].get_default(call_default_factory=True)
 
 
 class ZenohSettings(BaseModel):

@@ -48,6 +48,7 @@ from shared.messages import (
     OptimizeRequest,
 )
 from shared.metrics import MAP_SIZE, REJECTED
+from shared.settings import MapperSettings, default_of
 from shared.store import Store
 from shared.transport import Bus
 
@@ -86,7 +87,7 @@ class Collaboration:
         self,
         registry: MapRegistry,
         store: Store,
-        optimize_min_interval_s: float = 3.0,
+        optimize_min_interval_s: float = default_of(MapperSettings, "optimize_min_interval_s"),
         opt_share: float = 0.1,
     ) -> None:
         self.reg = registry

@@ -25,6 +25,7 @@ from shared.camera import PinholeRadTan
 from shared.geometry import Sim3, scale_translation, se3_inv, transform_points
 from shared.ids import gid, local_id_of
 from shared.messages import KeyframeBatch, MapPoints, NewKeyframe
+from shared.settings import MapperSettings, default_of
 
 from .fusion import fuse_by_projection
 from .pose_refine import refine_pose
@@ -33,12 +34,20 @@ from .server_map import NO_MP, ServerKeyframe, ServerMap, ServerMapPoint
 
 @dataclass
 class MapperParams:
-    refine_poses: bool = True
-    scale_correction: bool = True
-    kappa: float = 0.05
+    """Registration's parameters; the settings-backed ones default to and are built
+    from ``MapperSettings``."""
+
+    refine_poses: bool = default_of(MapperSettings, "refine_poses")
+    scale_correction: bool = default_of(MapperSettings, "scale_correction")
+    kappa: float = default_of(MapperSettings, "kappa")
     min_scale_baseline: float = 0.05  # map units of odometry translation to learn scale from
-    fuse: bool = True
+    fuse: bool = default_of(MapperSettings, "fuse")
     orphan_after_s: float = 5.0
+
+    @classmethod
+    def from_settings(cls, m: MapperSettings) -> MapperParams:
+        return cls(refine_poses=m.refine_poses, scale_correction=m.scale_correction,
+                   kappa=m.kappa, fuse=m.fuse)  # fmt: skip
 
 
 @dataclass

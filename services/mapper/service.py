@@ -67,12 +67,6 @@ def initial_map_id(agent: str) -> str:
     return f"map-{agent}"
 
 
-def params_from(settings: Settings) -> MapperParams:
-    m = settings.mapper
-    return MapperParams(refine_poses=m.refine_poses, scale_correction=m.scale_correction,
-                        kappa=m.kappa, fuse=m.fuse)  # fmt: skip
-
-
 class MapActor:
     """Owns one server map: applies batches in order, stores, acks; when idle, culls
     redundant keyframes and sends feedback."""
@@ -228,7 +222,7 @@ class MapActor:
 class MapperService:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.params = params_from(settings)
+        self.params = MapperParams.from_settings(settings.mapper)
         self.store = Store(connect(settings.redis_url))
         self._stop = threading.Event()
         self.registry = MapRegistry(self._new_actor)

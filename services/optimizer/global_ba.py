@@ -39,6 +39,7 @@ from services.optimizer.pose_graph import (
 )
 from shared.messages import CorrectionMsg, OptimizeRequest
 from shared.orb import SCALE_FACTOR
+from shared.settings import OptimizerSettings, default_of
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +48,12 @@ CHI2_2DOF_95 = 5.991
 
 @dataclass
 class BAParams:
-    max_iters: int = 20
+    """The settings-backed fields default to and are built from ``OptimizerSettings``."""
+
+    max_iters: int = default_of(OptimizerSettings, "ba_max_iterations")
     # Seconds from the call: no iteration starts that would end later than this
     # (one iteration always runs).
-    time_budget_s: float = 10.0
+    time_budget_s: float = default_of(OptimizerSettings, "ba_time_budget_s")
     rel_tol: float = 1e-4  # stop when an iteration lowers the error by less than this fraction
     huber_k: float = float(np.sqrt(CHI2_2DOF_95))
     chi2_outlier: float = CHI2_2DOF_95
@@ -68,6 +71,10 @@ class BAParams:
     diagonal_damping: bool = True  # LM damping scaled by the Hessian's diagonal (as g2o)
     lambda_initial: float = 1e-5
     linear_solver: str = "MULTIFRONTAL_CHOLESKY"  # GTSAM's name; no CHOLMOD in the wheel
+
+    @classmethod
+    def from_settings(cls, o: OptimizerSettings) -> BAParams:
+        return cls(max_iters=o.ba_max_iterations, time_budget_s=o.ba_time_budget_s)
 
 
 @dataclass
@@ -326,6 +333,11 @@ class GlobalParams:
     ba: BAParams = field(default_factory=BAParams)
     run_pgo: bool = True  # skip when there is no loop edge (nothing to distribute)
     run_ba: bool = True
+
+    @classmethod
+    def from_settings(cls, o: OptimizerSettings, run_pgo: bool = True) -> GlobalParams:
+        return cls(ba=BAParams.from_settings(o), run_pgo=run_pgo,
+                   run_ba=o.ba and o.ba_max_iterations > 0)  # fmt: skip
 
 
 def optimize_map(

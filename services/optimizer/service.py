@@ -32,7 +32,7 @@ from shared.settings import Settings
 from shared.store import connect
 from shared.transport import Bus, open_session
 
-from .global_ba import BAParams, GlobalParams, optimize_map
+from .global_ba import GlobalParams, optimize_map
 from .metrics import JOBS, OPTIMIZATIONS, SUPERSEDED
 
 log = logging.getLogger(__name__)
@@ -90,11 +90,8 @@ class OptimizerService:
             if self._newer(job):
                 raise Superseded
 
-        params = GlobalParams(
-            ba=BAParams(max_iters=o.ba_max_iterations, time_budget_s=o.ba_time_budget_s),
-            run_pgo=len(req.loops) > 0,  # nothing to distribute without a loop edge
-            run_ba=o.ba and o.ba_max_iterations > 0,
-        )
+        # No loop edge: nothing for the pose graph to distribute.
+        params = GlobalParams.from_settings(o, run_pgo=len(req.loops) > 0)
         corr = optimize_map(req, params, between_stages)
         corr.stats["seconds"] = time.perf_counter() - t0
         corr.stats["reason"] = req.reason

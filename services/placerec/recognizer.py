@@ -31,6 +31,7 @@ import numpy as np
 from shared.geometry import se3_inv
 from shared.ids import resolve_map
 from shared.messages import KeyframeEvent, Match
+from shared.settings import PlacerecSettings, default_of
 
 from .database import ConsistencyChecker, KeyframeDatabase
 from .keyframe import KeyframeData, MapPoints
@@ -42,8 +43,10 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RecognizerParams:
-    consistency: int = 3
-    loop_min_id_gap: int = 30
+    """The settings-backed fields default to and are built from ``PlacerecSettings``."""
+
+    consistency: int = default_of(PlacerecSettings, "consistency")
+    loop_min_id_gap: int = default_of(PlacerecSettings, "loop_min_id_gap")
     # After a verified match the same agent's stream rests this many keyframes
     # (ORB-SLAM: no loop detection within 10 keyframes of the last loop).
     rest_after_match: int = 10
@@ -58,6 +61,11 @@ class RecognizerParams:
     confirm_min: int = 2
     confirm_matches: int = 20
     verify: VerifyParams = field(default_factory=VerifyParams)
+
+    @classmethod
+    def from_settings(cls, p: PlacerecSettings) -> RecognizerParams:
+        return cls(consistency=p.consistency, loop_min_id_gap=p.loop_min_id_gap,
+                   verify=VerifyParams.from_settings(p))  # fmt: skip
 
 
 @dataclass

@@ -39,26 +39,19 @@ from shared.transport import Bus, drain, open_session
 
 from .metrics import DB_KEYFRAMES, KEYFRAMES, MATCHES_PUBLISHED, QUERY_SECONDS, VERIFIED
 from .recognizer import PlaceRecognizer, RecognizerParams
-from .verify import VerifyParams
 from .vocabulary import Vocabulary
 
 log = logging.getLogger(__name__)
 SERVICE = "placerec"
 
 
-def params_from(settings: Settings) -> RecognizerParams:
-    p = settings.placerec
-    return RecognizerParams(
-        consistency=p.consistency, loop_min_id_gap=p.loop_min_id_gap,
-        verify=VerifyParams(min_inliers=p.min_inliers, min_total_matches=p.min_matches),
-    )  # fmt: skip
-
-
 class PlacerecService:
     def __init__(self, settings: Settings, voc: Vocabulary | None = None) -> None:
         self.settings = settings
         path = settings.placerec.vocabulary or None
-        self.rec = PlaceRecognizer(voc or Vocabulary.load(path), params_from(settings))
+        self.rec = PlaceRecognizer(
+            voc or Vocabulary.load(path), RecognizerParams.from_settings(settings.placerec)
+        )
         self.q: queue.Queue = queue.Queue()
         self._stop = threading.Event()
         self.session = None

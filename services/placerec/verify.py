@@ -41,6 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from shared.geometry import Sim3, umeyama
 from shared.orb import SCALE_FACTOR
+from shared.settings import PlacerecSettings, default_of
 
 from .keyframe import KeyframeData, MapPoints
 from .vocabulary import as_u64, hamming_u64
@@ -65,11 +66,16 @@ class VerifyParams:
     # Relative 1-sigma of a map point's distance from its camera, for the weak 3D term
     # that keeps the scale observable when the two cameras share a centre.
     distance_sigma_rel: float = 0.1
-    min_inliers: int = 20  # after the refinement
+    min_inliers: int = default_of(PlacerecSettings, "min_inliers")  # after the refinement
     neighbourhood_radius_px: float = 10.0  # SearchByProjection into q
     neighbourhood_max_hamming: int = 50
-    min_total_matches: int = 40  # refined inliers + neighbourhood matches
+    # refined inliers + neighbourhood matches
+    min_total_matches: int = default_of(PlacerecSettings, "min_matches")
     seed: int = 0
+
+    @classmethod
+    def from_settings(cls, p: PlacerecSettings) -> VerifyParams:
+        return cls(min_inliers=p.min_inliers, min_total_matches=p.min_matches)
 
 
 @dataclass
