@@ -1,6 +1,7 @@
 """The API app: REST for agents and maps, a WebSocket of live poses, a live viewer.
 
-Reads only: all state comes from Redis through shared.store (written by the mapper).
+Reads only: all state comes from Redis through shared.store (written by the mapper;
+its docstring is the schema), live poses as its ``LivePose`` records.
 """
 
 from __future__ import annotations

@@ -5,9 +5,10 @@ correction applied once, however many workers ran it.
 
 The mapper owns every map, so it applies merges, loop edges and corrections itself,
 under the map actors' locks; the optimizer only ever works on a copy (CCM-SLAM §4.9).
-A merge locks both maps' actors in map-id order (no lock-order deadlock) and then
-re-points the merged map's agents and actor at the surviving map; batches already
-queued for the retired actor are forwarded by it (see ``MapActor``).
+A merge locks both maps' actors in map-id order (``MapRegistry.lock``: no lock-order
+deadlock) and then ``MapRegistry.merge`` re-points the merged map's agents and actor at
+the surviving map; batches already queued for the retired actor are forwarded by it
+(see ``MapActor``). This class gets the registry and the store, never the service.
 
 Optimization requests are debounced per map: a burst of matches right after two maps
 meet (every new keyframe of both agents re-finds the place) becomes one request with

@@ -1,5 +1,13 @@
 """The mapper service: Zenoh in, Redis and acks out.
 
+Who owns what: ``registry.MapRegistry`` holds the maps, agent handlers, actors, locks
+and merge chains; this module wires them to the wire (dispatch of keyframe batches and
+poses, the actors that register them, feedback, the optimization scheduler), ``collab``
+handles matches, merges, loops and corrections on the registry's maps, ``capture``
+copies a map for the optimizer, ``persist`` turns map changes into ``shared.store``
+writes (whose docstring is the Redis schema), ``registration`` / ``server_map`` are the
+algorithms, free of transport.
+
 Concurrency: one actor per server map. A dispatcher thread decodes every keyframe
 batch (so garbage costs one decode and never reaches a map) and queues it on the
 actor of the agent's map; each actor thread owns its map and applies batches one at

@@ -1,5 +1,10 @@
 """The optimizer service: map copies in, corrections out (CCM-SLAM §4.9); a pool.
 
+The contract is the two wire messages of ``shared/messages.py``: the algorithms
+(``pose_graph``, ``global_ba``) take the mapper's ``OptimizeRequest`` as it is and
+return the ``CorrectionMsg`` this service publishes; nothing here knows the mapper's
+map objects (the mapper builds the request in ``services/mapper/capture.py``).
+
 The mapper adds a copy of a map to the Redis job stream after a merge or a loop
 (``shared/jobs.py``: why a stream and not a Zenoh queryable, and the keys). Any number
 of optimizer processes read the stream as one consumer group, so each job runs on one

@@ -1,5 +1,9 @@
 """The placerec service: keyframe events in, verified matches out; a pool.
 
+The mapper's ``KeyframeEvent`` arrives on ``hivemap/map/{map}/kf``; a verified ``Match``
+goes to the mapper on ``hivemap/match`` (both in ``shared/messages.py``). Map ids are
+followed through merges the way the mapper follows them (``shared.ids.resolve_map``).
+
 Zenoh callbacks only enqueue; one worker recognizes places, keyframe by keyframe in
 arrival order (consistency checks need the order). Map-merge notes go on the same
 queue, so a relabel is never overtaken by a keyframe of the merged map.
