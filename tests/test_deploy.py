@@ -161,9 +161,14 @@ def _scrape_targets() -> dict[str, str]:
     prom = yaml.safe_load(PROMETHEUS.read_text())
     out = {}
     for job in prom["scrape_configs"]:
-        for sc in job["static_configs"]:
+        for sc in job.get("static_configs", []):
             for t in sc["targets"]:
                 out[t] = job.get("metrics_path", "/metrics")
+        # Scaled services are found by DNS (every replica's address under one name).
+        for sd in job.get("dns_sd_configs", []):
+            assert sd["type"] == "A", sd
+            for n in sd["names"]:
+                out[f"{n}:{sd['port']}"] = job.get("metrics_path", "/metrics")
     return out
 
 

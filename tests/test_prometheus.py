@@ -43,6 +43,9 @@ def scrape_config_for(ports: dict[str, int], interval: str = "1s") -> dict:
     for job in cfg["scrape_configs"]:
         name = job["job_name"]
         assert name in ports, f"the scrape config has a job {name!r} this stack does not run"
+        for sd in job.pop("dns_sd_configs", []):  # scaled services: one A name each
+            assert sd["names"] == [name], sd
+            job.setdefault("static_configs", []).append({"targets": [f"{name}:{sd['port']}"]})
         for sc in job["static_configs"]:
             assert all(t.split(":")[0] == name for t in sc["targets"]), sc["targets"]
             sc["targets"] = [f"127.0.0.1:{ports[name]}"]
