@@ -1,0 +1,132 @@
+"""Scale-out (issue 20 item 7, for the pools): per-instance CPU per keyframe with one
+placerec and one optimizer, then with two of each, for the same simulated team, so the
+ratio shows how far the work splits. Each instance's CPU is read from /proc (user +
+system seconds of its process) from when the agents start to the end of the run;
+keyframes are those the place recognizers took in.
+
+    .venv/bin/python bench/bench_scale.py [--agents 6] [--frames 900:1500] [--speed 2]
+
+Mappers are not scaled here: the mapper does not take map leases yet (README, "From
+one box to a cluster").
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import table, write_report  # noqa: E402
+from prometheus_client.parser import text_string_to_metric_families  # noqa: E402
+
+from services.launcher import Scale, Stack, service_plan  # noqa: E402
+from shared.jobs import JobQueue  # noqa: E402
+from shared.redis_server import free_port  # noqa: E402
+from shared.settings import Settings  # noqa: E402
+from shared.store import Store, connect  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int) -> float:
+    f = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(f[11]) + int(f[12])) / TICK  # utime, stime (fields 14, 15)
+
+
+def metric(port: int, name: str, labels: dict[str, str]) -> float:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+        text = r.read().decode()
+    for fam in text_string_to_metric_families(text):
+        for s in fam.samples:
+            if s.name == name and s.labels == labels:
+                return s.value
+    return 0.0
+
+
+def run(scale: Scale, agents: int, frames: str, speed: float) -> list[dict]:
+    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port(),
+                        placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
+                        log_level="WARNING")  # fmt: skip
+    stack = Stack(settings, env={"HIVEMAP_LOG_LEVEL": "WARNING"}, scale=scale)
+    stack.start()
+    try:
+        # CPU from here on: the processes' start (imports, vocabulary) is not per keyframe.
+        time.sleep(3)
+        cpu0 = {c.name: cpu_s(c.proc.pid) for c in stack.children}
+        stack.add("sim-agents", ["sim-agent", "--id", "team", "--count", str(agents),
+                                 "--traj", "MH01,MH02,MH03", "--frames", frames,
+                                 "--speed", str(speed), "--flush-timeout", "30"],
+                  env={"HIVEMAP_LOG_LEVEL": "WARNING"})  # fmt: skip
+        t0 = time.monotonic()
+        (agents_proc,) = [c.proc for c in stack.children if c.name == "sim-agents"]
+        agents_proc.wait(900)
+        flight_s = time.monotonic() - t0
+        plan = {p.name: p for p in service_plan(stack.settings, scale)}
+        pr = [n for n in plan if n.startswith("placerec")]
+
+        def seen() -> float:
+            return max(metric(plan[n].http_port, "hivemap_placerec_keyframes_total",
+                              {"role": "stored"}) +
+                       metric(plan[n].http_port, "hivemap_placerec_keyframes_total",
+                              {"role": "queried"}) for n in pr)  # fmt: skip
+
+        # Let place recognition and optimization drain what the team sent.
+        last, still = -1.0, 0
+        while still < 3:
+            time.sleep(2)
+            now = seen()
+            still = still + 1 if now == last else 0
+            last = now
+        r = connect(stack.settings.redis_url)
+        n_maps = len(Store(r).maps())
+        taken = JobQueue(r).taken()
+        r.close()
+        rows = []
+        for c in stack.children:
+            if c.name not in plan or c.name == "api":
+                continue
+            port = plan[c.name].http_port
+            row = {"scale": f"p{scale.placerecs}o{scale.optimizers}", "instance": c.name,
+                   "cpu_s": cpu_s(c.proc.pid) - cpu0[c.name], "keyframes": last, "maps": n_maps,
+                   "flight_s": flight_s}  # fmt: skip
+            if c.name.startswith("placerec"):
+                row["queried"] = metric(port, "hivemap_placerec_keyframes_total",
+                                        {"role": "queried"})  # fmt: skip
+            if c.name.startswith("optimizer"):
+                row["jobs_done"] = metric(port, "hivemap_optimizer_jobs_total",
+                                          {"outcome": "done"})  # fmt: skip
+            row["cpu_ms_per_kf"] = 1e3 * row["cpu_s"] / max(last, 1)
+            rows.append(row)
+        rows.append({"scale": rows[0]["scale"], "instance": "(jobs taken per worker)",
+                     "jobs_done": sorted(taken.values())})  # fmt: skip
+        return rows
+    finally:
+        stack.stop()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--agents", type=int, default=6)
+    ap.add_argument("--frames", default="900:1500")
+    ap.add_argument("--speed", type=float, default=2.0)
+    ap.add_argument("--name", default="scale_pools")
+    args = ap.parse_args()
+    load0 = os.getloadavg()
+    rows = []
+    for scale in (Scale(1, 1, 1), Scale(1, 2, 2)):
+        rows += run(scale, args.agents, args.frames, args.speed)
+    cols = ["scale", "instance", "cpu_s", "cpu_ms_per_kf", "keyframes", "queried",
+            "jobs_done", "maps", "flight_s"]  # fmt: skip
+    print(table(rows, cols))
+    path = write_report(args.name, {"args": vars(args), "loadavg_before": load0,
+                                    "loadavg_after": os.getloadavg(), "rows": rows})  # fmt: skip
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
