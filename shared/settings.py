@@ -59,7 +59,18 @@ class CommSettings(BaseModel):
 
     rate_hz: float = Field(5.0, gt=0)
     max_msg_bytes: int = Field(400_000, gt=1000)
+    # The first resend timeout's floor; it follows the measured ack latency above it and
+    # doubles per resend of the same item up to backoff_max_s, +-jitter (comm.py).
     resend_timeout_s: float = Field(2.0, gt=0)
+    backoff_max_s: float = Field(30.0, gt=0)
+    jitter: float = Field(0.2, ge=0, lt=1)
+    # Keyframes in flight unacknowledged: starts at window, +1 per ack within
+    # ack_target_s, halved on a later one down to window_min (the agent's share of a
+    # loaded server; the target is the bound on the latency of what it accepts).
+    window: int = Field(8, ge=1)
+    window_min: int = Field(2, ge=1)
+    window_max: int = Field(64, ge=1)
+    ack_target_s: float = Field(1.0, gt=0)
     pose_rate_hz: float = Field(10.0, gt=0)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
@@ -101,3 +102,123 @@ def test_round_trip_through_encoding_keeps_all_data():
     assert [k.id for k in d.new_kfs] == [0, 1]
     assert len(d.new_mps) == sum(len(k.new_mps) for k in kfs)
     np.testing.assert_array_equal(d.new_kfs[1].mp_ids, kfs[1].kf.mp_ids)
+
+
+def _send_all(c: CommModule, t: float) -> list[int]:
+    m = c.next_message(t, 0, 0)
+    return [] if m is None else [k.id for k in m.new_kfs]
+
+
+def test_resends_back_off_exponentially_to_a_cap_with_jitter():
+    """A server that never answers gets a keyframe again after ~2, 4, 8, 16, 30, 30 s
+    (+-20 %), not every 2 s: 8 sends in 120 s instead of 60."""
+    kf = _keyframes(1)[0].kf
+    c = CommModule("A", rate_hz=10, resend_timeout_s=2.0, backoff_max_s=30.0, jitter=0.2)
+    c.add_keyframe(kf)
+    sends = []
+    for i in range(1200):
+        t = i * 0.1
+        c.check_timeouts(t)
+        if _send_all(c, t):
+            sends.append(t)
+    gaps = np.diff(sends)
+    assert len(sends) <= 9
+    nominal = [2, 4, 8, 16, 30, 30, 30][: len(gaps)]
+    for g, n in zip(gaps, nominal, strict=False):
+        assert 0.8 * n - 0.11 <= g <= 1.2 * n + 0.11, (gaps, nominal)
+    # Jitter: two agents that lost the server at the same moment do not resend in step.
+    d = CommModule("B", rate_hz=10, resend_timeout_s=2.0, backoff_max_s=30.0, jitter=0.2)
+    d.add_keyframe(kf)
+    other = []
+    for i in range(1200):
+        d.check_timeouts(i * 0.1)
+        if _send_all(d, i * 0.1):
+            other.append(i * 0.1)
+    assert other[1:] != sends[1:]
+
+
+def test_resend_timeout_follows_the_ack_latency():
+    """Acks that take 3 s (a loaded server) do not make the agent resend after 2 s."""
+    kfs = _keyframes(12)
+    c = CommModule("A", rate_hz=100, resend_timeout_s=2.0)
+    t, sent_at = 0.0, {}
+    for k in kfs:
+        c.add_keyframe(k.kf)
+        c.add_map_points(k.new_mps)
+    for step in range(600):
+        t = step * 0.05
+        c.check_timeouts(t)
+        m = c.next_message(t, 0, 0)
+        if m is not None:
+            for k in m.new_kfs:
+                sent_at.setdefault(k.id, t)
+        due = [i for i, t0 in sent_at.items() if t - t0 >= 3.0 and i in c.kfs]
+        mp = [i for i, v in c.mps.items() if v[0] in due]
+        if due:
+            c.on_ack(_ack(due, mp), t)
+    assert not c.pending
+    assert c.srtt == pytest.approx(3.0, abs=0.1)
+    assert c.rto >= 3.0
+    # Only the first keyframes, before any latency was measured, went out twice.
+    assert c.stats.kf_resent <= 8
+
+
+def test_window_shrinks_when_acks_are_late_and_grows_when_prompt():
+    kfs = _keyframes(30)
+    c = CommModule(
+        "A", rate_hz=1000, resend_timeout_s=100, window=8, ack_target_s=0.5, window_min=1
+    )
+    for k in kfs:
+        c.add_keyframe(k.kf)
+    first = _send_all(c, 0.0)
+    assert len(first) == 8 and c.in_flight == 8
+    assert c.next_message(0.01, 0, 0) is None  # window full: nothing more, not even empty
+    # Acks come 2 s late: the window halves (once per round trip), down to 1.
+    t = 2.0
+    for i in first:
+        c.on_ack(_ack([i]), t)
+    assert c.window < 8
+    for _ in range(6):
+        ids = _send_all(c, t)
+        t += 2.0
+        c.on_ack(_ack(ids), t)
+    assert c.window == 1 and c.stats.window_cuts >= 3
+    # Prompt acks: it grows again, one per ack.
+    for _ in range(5):
+        ids = _send_all(c, t)
+        t += 0.1
+        c.on_ack(_ack(ids), t)
+    assert c.window >= 8
+
+
+def test_held_and_asked_for_keyframes_stay_outside_the_window():
+    """With a window of one, a keyframe the server holds (its predecessor was lost) must
+    not block the predecessor's resend, or the two would wait on each other."""
+    kfs = _keyframes(3)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100, window=1, window_max=1)
+    for k in kfs:
+        c.add_keyframe(k.kf)
+    assert _send_all(c, 0.0) == [0]
+    c.on_ack(_ack([0]), 0.1)
+    assert _send_all(c, 0.2) == [1]  # lost on the way
+    c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0,
+                 np.array([1], np.int64)), 0.3)  # fmt: skip
+    assert c.in_flight == 0  # held: not counted
+    assert _send_all(c, 0.4) == [2]
+    # The server holds 2 and asks for 1 again: 1 goes out though 2 fills the window.
+    c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0,
+                 np.array([2], np.int64), np.array([1], np.int64)), 0.5)  # fmt: skip
+    assert _send_all(c, 0.6) == [1]
+    c.on_ack(_ack([1, 2]), 0.7)
+    assert c.unacked_kf_ids == set()
+
+
+def test_map_points_wait_for_their_keyframe():
+    kfs = _keyframes(3)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100, window=1, window_max=1)
+    for k in kfs:
+        c.add_keyframe(k.kf)
+        c.add_map_points(k.new_mps)
+    m = c.next_message(0.0, 0, 0)
+    assert [k.id for k in m.new_kfs] == [0]
+    assert set(m.new_mps.ref_kf.tolist()) <= {0}

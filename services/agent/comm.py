@@ -4,9 +4,25 @@ New keyframes and map points are sent once with all their data, later changes on
 as pose/position updates. Messages leave at most at ``rate_hz`` and are cut at
 ``max_msg_bytes``; what does not fit waits for the next message. Sending is
 optimistic: an item counts as delivered unless an ack shows a gap (a later id
-acked while an earlier one was not), or no ack came within ``resend_timeout_s``
+acked while an earlier one was not), or no ack came within its resend timeout
 (which also covers a lost last message and a server that restarted). Both put the
 full item back in the queue.
+
+An overloaded server must not be buried under resends (a fixed 2 s timeout made 32
+agents send 3-7x their data when acks took longer than that). So, as TCP does:
+- the resend timeout follows the measured ack latency (``srtt + 4 rttvar``, never
+  below ``resend_timeout_s``; only first sends are timed, Karn's rule), and doubles
+  with each resend of the same item up to ``backoff_max_s``, with +-``jitter`` so
+  agents that lost the server together do not come back in step;
+- at most ``window`` keyframes are in flight unacknowledged. The window grows by one
+  per ack that came back within ``ack_target_s`` and halves (at most once per round
+  trip) on one that did not: a slow server slows its agents' sending, and the backlog
+  waits in the agents' buffers (CCM-SLAM §4.5) instead of in the server's queue,
+  which keeps the latency of what the server accepts bounded. Keyframes the server
+  holds (waiting for a predecessor) or asks for again are outside the window, so a
+  hole can always be filled, and while the server says nothing for a timeout one
+  keyframe probes past a full window. Delay, not loss, shrinks it: random loss on a
+  radio link says nothing about the server's load.
 
 The same class serves the real VO agent and the feature-level simulated agent.
 """
@@ -14,6 +30,7 @@ The same class serves the real VO agent and the feature-level simulated agent.
 from __future__ import annotations
 
 import bisect
+import random
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,8 +49,9 @@ def estimate_kf_bytes(kf: NewKeyframe) -> int:
 
 @dataclass
 class _Sent:
-    t: float
+    t: float  # when it was sent (or last heard of as held)
     seq: int
+    timeout: float = 0.0  # resend unless acked or held within this long of ``t``
 
 
 @dataclass
@@ -45,6 +63,7 @@ class CommStats:
     mp_sent: int = 0
     mp_resent: int = 0
     kf_dropped_unacked: int = 0
+    window_cuts: int = 0  # times the window halved on a late ack
     ack_latencies: list[float] = field(default_factory=list)
     ack_sent_at: list[float] = field(default_factory=list)  # first send of each, monotonic
 
@@ -56,11 +75,34 @@ class CommModule:
         rate_hz: float = 5.0,
         max_msg_bytes: int = 400_000,
         resend_timeout_s: float = 2.0,
+        backoff_max_s: float = 30.0,
+        jitter: float = 0.2,
+        window: int = 8,
+        window_max: int = 64,
+        ack_target_s: float = 1.0,
+        window_min: int = 2,
     ) -> None:
         self.agent = agent
         self.min_interval = 1.0 / rate_hz
         self.max_msg_bytes = max_msg_bytes
         self.resend_timeout_s = resend_timeout_s
+        self.backoff_max_s = max(backoff_max_s, resend_timeout_s)
+        self.jitter = jitter
+        self._rng = random.Random(agent)  # seeded: a run replays the same resend times
+        self.srtt: float | None = None
+        self.rttvar = 0.0
+        self.window = float(window)
+        self.window_max = window_max
+        self.window_min = min(window_min, window)
+        self.ack_target_s = ack_target_s
+        self._last_cut = -1e18
+        self._backoff = 1.0  # carried from the last timeout to first sends (Karn)
+        self._last_ack_t = -1e18
+        self._last_probe = -1e18
+        self.attempts: dict[int, int] = {}  # keyframe id -> sends so far (unacked ones)
+        self._mp_attempts: dict[int, int] = {}
+        self.held: set[int] = set()  # sent keyframes the server said it holds
+        self.urgent: set[int] = set()  # asked for again by the server: not windowed
         self.seq = 0
         self.last_send = -1e18
         # Full data of every keyframe / map point not yet acknowledged.
@@ -78,6 +120,49 @@ class CommModule:
         self._last_seq_by_kf: dict[int, int] = {}
         self.resent_reasons: dict[tuple[str, str], int] = {}
         self.stats = CommStats()
+
+    @classmethod
+    def from_settings(cls, agent: str, c) -> CommModule:
+        """From ``shared.settings.CommSettings``."""
+        return cls(agent, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s, c.backoff_max_s,
+                   c.jitter, c.window, c.window_max, c.ack_target_s, c.window_min)  # fmt: skip
+
+    # --- resend timing and window --------------------------------------------------------
+    @property
+    def rto(self) -> float:
+        """The first resend timeout: the ack latency and its spread, at least the
+        configured floor."""
+        if self.srtt is None:
+            return self.resend_timeout_s
+        return min(max(self.resend_timeout_s, self.srtt + 4 * self.rttvar), self.backoff_max_s)
+
+    def _timeout(self, attempts: int) -> float:
+        """Timeout after the ``attempts``-th send (1 = first): doubling, capped, jittered.
+        A first send also keeps the backoff of the last timeout until a first send is
+        acked in time (Karn): else, with acks slower than the floor, every keyframe would
+        time out before its ack and the latency would never be measured."""
+        mult = max(2.0 ** max(attempts - 1, 0), self._backoff)
+        base = min(self.rto * mult, self.backoff_max_s)
+        return base * (1.0 + self.jitter * (2.0 * self._rng.random() - 1.0))
+
+    def _on_latency(self, lat: float, now: float) -> None:
+        self._backoff = 1.0
+        if self.srtt is None:
+            self.srtt, self.rttvar = lat, lat / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(lat - self.srtt)
+            self.srtt = 0.875 * self.srtt + 0.125 * lat
+        if lat <= self.ack_target_s:
+            self.window = min(self.window + 1.0, float(self.window_max))
+        elif now - self._last_cut >= self.srtt:
+            # One cut per round trip: the acks of one late burst are one congestion signal.
+            self._last_cut = now
+            self.window = max(float(self.window_min), self.window / 2)
+            self.stats.window_cuts += 1
+
+    @property
+    def in_flight(self) -> int:
+        return sum(1 for i in self.sent_kfs if i not in self.held and i not in self.urgent)
 
     # --- input from the local map -------------------------------------------------
     def add_keyframe(self, kf: NewKeyframe) -> None:
@@ -114,12 +199,16 @@ class CommModule:
             self.stats.kf_dropped_unacked += 1
             self.forgotten.add(kf_id)
         self.sent_kfs.pop(kf_id, None)
+        self.attempts.pop(kf_id, None)
+        self.held.discard(kf_id)
+        self.urgent.discard(kf_id)
         i = bisect.bisect_left(self.queued_kfs, kf_id)
         if i < len(self.queued_kfs) and self.queued_kfs[i] == kf_id:
             self.queued_kfs.pop(i)
         self.kf_updates.pop(kf_id, None)
 
     def forget_map_point(self, mp_id: int) -> None:
+        self._mp_attempts.pop(mp_id, None)
         self.mps.pop(mp_id, None)
         self.queued_mps.discard(mp_id)
         self.sent_mps.pop(mp_id, None)
@@ -137,6 +226,7 @@ class CommModule:
         """Drop acknowledged data; requeue what the ack proves lost. Returns the
         publish-to-ack latency of each keyframe acknowledged for the first time."""
         lat: list[float] = []
+        self._last_ack_t = now
         acked = ack.kf_ids.tolist()
         newest_seq = max((self._last_seq_by_kf.get(i, -1) for i in acked), default=-1)
         for i in acked:
@@ -146,23 +236,34 @@ class CommModule:
                 if t0 is not None:
                     lat.append(now - t0)
                     self.stats.ack_sent_at.append(t0)
+                    sent = self.sent_kfs.get(i)
+                    # Karn: a resent item's latency mixes up its sends; a held one's
+                    # includes waiting for another keyframe.
+                    if self.attempts.get(i) == 1 and i not in self.held and sent is not None:
+                        self._on_latency(now - sent.t, now)
             self.sent_kfs.pop(i, None)
             self._last_seq_by_kf.pop(i, None)
+            self.attempts.pop(i, None)
+            self.held.discard(i)
+            self.urgent.discard(i)
             self.acked_kfs.add(i)
         for i in ack.mp_ids.tolist():
             self.mps.pop(i, None)
             self.sent_mps.pop(i, None)
             self.queued_mps.discard(i)
+            self._mp_attempts.pop(i, None)
         held = set() if ack.held_kf_ids is None else set(ack.held_kf_ids.tolist())
         if held:
             # Received and waiting on the server: not lost, so no timeout resend.
             for i in held:
                 if i in self.sent_kfs:
                     self.sent_kfs[i].t = now
+                    self.held.add(i)
         if ack.missing_kf_ids is not None:
             for i in ack.missing_kf_ids.tolist():
                 if i in self.kfs and i not in self.queued_kfs:
                     self._requeue_kf(i, "nack")
+                    self.urgent.add(i)
         if newest_seq >= 0:
             # Gap evidence: anything sent in an earlier message than an acked keyframe,
             # yet not acked itself, was lost (messages are processed in order).
@@ -178,17 +279,20 @@ class CommModule:
     def check_timeouts(self, now: float) -> int:
         n = 0
         for i, s in list(self.sent_kfs.items()):
-            if now - s.t > self.resend_timeout_s:
+            if now - s.t > s.timeout:
+                self._backoff = min(max(self._backoff, 2.0 ** self.attempts.get(i, 1)),
+                                    self.backoff_max_s / self.resend_timeout_s)  # fmt: skip
                 self._requeue_kf(i, "timeout")
                 n += 1
         for i, s in list(self.sent_mps.items()):
-            if now - s.t > self.resend_timeout_s:
+            if now - s.t > s.timeout:
                 self._requeue_mp(i, "timeout")
                 n += 1
         return n
 
     def _requeue_kf(self, i: int, reason: str) -> None:
         self.sent_kfs.pop(i, None)
+        self.held.discard(i)
         if i in self.kfs:
             j = bisect.bisect_left(self.queued_kfs, i)
             if j >= len(self.queued_kfs) or self.queued_kfs[j] != i:
@@ -213,29 +317,54 @@ class CommModule:
         budget = self.max_msg_bytes
         seq = self.seq
         new_kfs: list[NewKeyframe] = []
-        while self.queued_kfs:
-            kf = self.kfs.get(self.queued_kfs[0])
+        room = int(self.window) - self.in_flight
+        if self._last_probe < 0:
+            self._last_probe = now  # silence is counted from the first message on
+        if room <= 0 and now - max(self._last_ack_t, self._last_probe) >= self.rto:
+            # A full window and a silent server: one new keyframe per timeout goes out
+            # anyway, so a server that came back (a restarted mapper) is noticed at its
+            # first ack -- which requeues everything older at once (gap) -- and not only
+            # when the backed-off timeouts of the window's keyframes run out.
+            room = 1
+            self._last_probe = now
+        j = 0
+        while j < len(self.queued_kfs):
+            kid = self.queued_kfs[j]
+            kf = self.kfs.get(kid)
             if kf is None:
-                self.queued_kfs.pop(0)
+                self.queued_kfs.pop(j)
+                continue
+            urgent = kid in self.urgent
+            if room <= 0 and not urgent:
+                j += 1  # a later one may be urgent
                 continue
             size = estimate_kf_bytes(kf)
             if new_kfs and size > budget:
                 break
             budget -= size
             new_kfs.append(kf)
-            self.queued_kfs.pop(0)
+            self.queued_kfs.pop(j)
+            room -= not urgent
         for kf in new_kfs:
             resend = kf.id in self.first_sent_at
             self.stats.kf_resent += resend
             self.stats.kf_sent += 1
             self.first_sent_at.setdefault(kf.id, now)
-            self.sent_kfs[kf.id] = _Sent(now, seq)
+            n = self.attempts[kf.id] = self.attempts.get(kf.id, 0) + 1
+            self.sent_kfs[kf.id] = _Sent(now, seq, self._timeout(n))
             self._last_seq_by_kf[kf.id] = seq
-        # Map points in id order, as many as fit.
-        mp_ids = sorted(self.queued_mps)[: max(0, budget // _MP_BYTES)]
+        # Map points in id order, as many as fit, once the server has (or gets in this
+        # message) the keyframe they hang on: before that they would only wait there,
+        # or time out here.
+        out_kfs = {kf.id for kf in new_kfs}
+        ready = sorted(i for i in self.queued_mps
+                       if (r := self.mps[i][0]) in out_kfs or r in self.sent_kfs
+                       or r in self.acked_kfs or r not in self.kfs)  # fmt: skip
+        mp_ids = ready[: max(0, budget // _MP_BYTES)]
         for i in mp_ids:
             self.queued_mps.discard(i)
-            self.sent_mps[i] = _Sent(now, seq)
+            n = self._mp_attempts[i] = self._mp_attempts.get(i, 0) + 1
+            self.sent_mps[i] = _Sent(now, seq, self._timeout(n))
         budget -= len(mp_ids) * _MP_BYTES
         new_mps = self._pack_mps(mp_ids)
         self.stats.mp_sent += len(mp_ids)
@@ -252,6 +381,8 @@ class CommModule:
         )
         for i in upd_ids:
             del self.mp_updates[i]
+        if not (new_kfs or mp_ids or kf_upd or upd_ids):
+            return None  # all of it waits for the window (or its keyframe)
         self.seq += 1
         self.last_send = now
         return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)

@@ -96,7 +96,7 @@ class Agent:
         self.n_local, self.n_buffer = n_local, n_buffer
         self.vo = VisualOdometry(source.camera, vo_params)
         c = settings.comm
-        self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
+        self.comm = CommModule.from_settings(agent_id, c)
         self.stats = AgentStats()
         self.health = HealthMeter()
         self.poses: list[tuple[int, np.ndarray]] = []  # online: VO pose through S_g_l

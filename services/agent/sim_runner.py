@@ -79,7 +79,7 @@ class SimAgentRunner:
         self.flush_timeout_s = flush_timeout_s
         self.stop_event = stop or threading.Event()
         c = settings.comm
-        self.comm = CommModule(agent_id, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s)
+        self.comm = CommModule.from_settings(agent_id, c)
         self.stats = RunStats(agent_id)
         self.estimates: list[tuple[int, np.ndarray]] = []
         self.kf_ref = -1
