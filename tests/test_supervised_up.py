@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -61,9 +62,8 @@ class Up:
             self.lines.append(line)
             if line.startswith("Ctrl-C"):
                 break
-        self.redis_url = next(
-            x.split(":", 1)[1].strip() for x in self.lines if x.startswith("redis")
-        )
+        self.redis_url = next(m.group(0) for x in self.lines
+                              if (m := re.search(r"redis://\S+", x)))  # fmt: skip
 
     def get(self, path: str):
         import urllib.request
