@@ -17,40 +17,52 @@ def check_id(value: str, what: str = "id") -> str:
     return value
 
 
+def _agent(agent: str, leaf: str) -> str:
+    return f"{ROOT}/agent/{check_id(agent, 'agent')}/{leaf}"
+
+
+def _map(map_id: str, leaf: str) -> str:
+    return f"{ROOT}/map/{check_id(map_id, 'map')}/{leaf}"
+
+
 def agent_kf(agent: str) -> str:
-    return f"{ROOT}/agent/{check_id(agent, 'agent')}/up/kf"
+    return _agent(agent, "up/kf")
 
 
 def agent_pose(agent: str) -> str:
-    return f"{ROOT}/agent/{check_id(agent, 'agent')}/up/pose"
+    return _agent(agent, "up/pose")
 
 
 def agent_ack(agent: str) -> str:
-    return f"{ROOT}/agent/{check_id(agent, 'agent')}/down/ack"
+    return _agent(agent, "down/ack")
 
 
 def agent_map(agent: str) -> str:
-    return f"{ROOT}/agent/{check_id(agent, 'agent')}/down/map"
+    return _agent(agent, "down/map")
 
 
 def map_kf(map_id: str) -> str:
-    return f"{ROOT}/map/{check_id(map_id, 'map')}/kf"
+    return _map(map_id, "kf")
 
 
 def map_correction(map_id: str) -> str:
-    return f"{ROOT}/map/{check_id(map_id, 'map')}/correction"
+    return _map(map_id, "correction")
 
 
 def map_merged(map_id: str) -> str:
-    return f"{ROOT}/map/{check_id(map_id, 'map')}/merged"
+    return _map(map_id, "merged")
+
+
+def _chunk(key: str, kind: str) -> str | None:
+    parts = str(key).split("/")
+    if len(parts) >= 3 and parts[0] == ROOT and parts[1] == kind:
+        return parts[2]
+    return None
 
 
 def map_of(key: str) -> str | None:
     """The map chunk of ``hivemap/map/{map}/...``."""
-    parts = str(key).split("/")
-    if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "map":
-        return parts[2]
-    return None
+    return _chunk(key, "map")
 
 
 MATCH = f"{ROOT}/match"
@@ -66,7 +78,4 @@ ALL_MAP_MERGED = f"{ROOT}/map/*/merged"
 
 def agent_of(key: str) -> str | None:
     """The agent chunk of ``hivemap/agent/{agent}/...``."""
-    parts = str(key).split("/")
-    if len(parts) >= 3 and parts[0] == ROOT and parts[1] == "agent":
-        return parts[2]
-    return None
+    return _chunk(key, "agent")

@@ -61,49 +61,15 @@ from shared.messages import DecodeError, packb, unpackb
 
 _P = "hm"
 POSE_CHANNEL = f"{_P}:poses"
-_AGENTS = f"{_P}:agents"
-_AGENT_INDEX = f"{_P}:agent_index"
-_AGENT_INDEX_NEXT = f"{_P}:agent_index_next"
-_ALIAS = f"{_P}:alias"
-_MAPS = f"{_P}:maps"
+_AGENTS, _MAPS, _ALIAS = f"{_P}:agents", f"{_P}:maps", f"{_P}:alias"
+_AGENT_INDEX, _AGENT_INDEX_NEXT = f"{_P}:agent_index", f"{_P}:agent_index_next"
 
 MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
 
 
-def _k_agent(a: str) -> str:
-    return f"{_P}:agent:{a}"
-
-
-def _k_agent_kfs(a: str) -> str:
-    return f"{_k_agent(a)}:kfs"
-
-
-def _k_agent_removed(a: str) -> str:
-    return f"{_k_agent(a)}:removed"
-
-
-def _k_agent_pose(a: str) -> str:
-    return f"{_k_agent(a)}:pose"
-
-
-def _k_kf(a: str, i: int) -> str:
-    return f"{_P}:kf:{a}:{i}"
-
-
-def _k_mps(a: str) -> str:
-    return f"{_P}:mp:{a}"
-
-
-def _k_map(m: str) -> str:
-    return f"{_P}:map:{m}"
-
-
-def _k_map_kfs(m: str) -> str:
-    return f"{_k_map(m)}:kfs"
-
-
-def _k_map_loops(m: str) -> str:
-    return f"{_k_map(m)}:loops"
+def _k(*parts: object) -> str:
+    """``hm:part:part...``: every key of the layout above is built here."""
+    return ":".join((_P, *map(str, parts)))
 
 
 def _f8(b: bytes | None, shape: tuple[int, ...]) -> np.ndarray | None:
@@ -224,13 +190,13 @@ class Store:
     @staticmethod
     def new_agent(pipe, agent: str, map_id: str, now_ns: int) -> None:
         pipe.sadd(_AGENTS, agent)
-        pipe.hset(_k_agent(agent), "first_ns", now_ns)
+        pipe.hset(_k("agent", agent), "first_ns", now_ns)
         Store.new_map(pipe, map_id, now_ns)
 
     @staticmethod
     def new_map(pipe, map_id: str, now_ns: int) -> None:
         pipe.sadd(_MAPS, map_id)
-        pipe.hsetnx(_k_map(map_id), "created_ns", now_ns)
+        pipe.hsetnx(_k("map", map_id), "created_ns", now_ns)
 
     @staticmethod
     def put_agent(pipe, agent: str, st: AgentState) -> None:
@@ -238,11 +204,11 @@ class Store:
                   "lam": repr(float(st.lam)), "index": st.index, "kf_high": st.kf_high}  # fmt: skip
         if st.calib is not None:
             fields["calib"] = _b8(st.calib)
-        pipe.hset(_k_agent(agent), mapping=fields)
+        pipe.hset(_k("agent", agent), mapping=fields)
 
     @staticmethod
     def set_map_agents(pipe, map_id: str, agents) -> None:
-        pipe.hset(_k_map(map_id), "agents", ",".join(sorted(agents)))
+        pipe.hset(_k("map", map_id), "agents", ",".join(sorted(agents)))
 
     @staticmethod
     def put_keyframe(pipe, kf: StoredKeyframe) -> None:
@@ -255,36 +221,36 @@ class Store:
             "oct": np.asarray(kf.octaves, np.uint8).tobytes(),
             "desc": np.asarray(kf.descriptors, np.uint8).tobytes(),
         }  # fmt: skip
-        pipe.hset(_k_kf(kf.agent, kf.id), mapping=fields)
-        pipe.zadd(_k_agent_kfs(kf.agent), {str(kf.id): kf.id})
+        pipe.hset(_k("kf", kf.agent, kf.id), mapping=fields)
+        pipe.zadd(_k("agent", kf.agent, "kfs"), {str(kf.id): kf.id})
         Store.add_map_keyframe(pipe, kf.map_id, kf.agent, kf.id)
 
     @staticmethod
     def set_keyframe_state(pipe, kf: StoredKeyframe) -> None:
         """The fields a pose, association or map change rewrites."""
-        pipe.hset(_k_kf(kf.agent, kf.id), mapping={
+        pipe.hset(_k("kf", kf.agent, kf.id), mapping={
             "map": kf.map_id, "gid": kf.gid, "pose": _b8(kf.T_m_kf),
             "mpg": np.asarray(kf.mp_gids, "<i8").tobytes(), "gparent": kf.gparent,
         })  # fmt: skip
 
     @staticmethod
     def set_keyframe_parent(pipe, agent: str, kf_id: int, gparent: int) -> None:
-        pipe.hset(_k_kf(agent, kf_id), "gparent", gparent)
+        pipe.hset(_k("kf", agent, kf_id), "gparent", gparent)
 
     @staticmethod
     def add_map_keyframe(pipe, map_id: str, agent: str, kf_id: int) -> None:
-        pipe.sadd(_k_map_kfs(map_id), f"{agent}:{kf_id}")
+        pipe.sadd(_k("map", map_id, "kfs"), f"{agent}:{kf_id}")
 
     @staticmethod
     def remove_keyframe(pipe, agent: str, kf_id: int, map_id: str) -> None:
-        pipe.delete(_k_kf(agent, kf_id))
-        pipe.zrem(_k_agent_kfs(agent), str(kf_id))
-        pipe.srem(_k_map_kfs(map_id), f"{agent}:{kf_id}")
+        pipe.delete(_k("kf", agent, kf_id))
+        pipe.zrem(_k("agent", agent, "kfs"), str(kf_id))
+        pipe.srem(_k("map", map_id, "kfs"), f"{agent}:{kf_id}")
 
     @staticmethod
     def put_removed(pipe, agent: str, kf_id: int, anchor_gid: int, T_anchor_kf) -> None:
         """A culled keyframe's anchor, so registration can still chain through it."""
-        pipe.hset(_k_agent_removed(agent), str(kf_id), packb([int(anchor_gid), T_anchor_kf]))
+        pipe.hset(_k("agent", agent, "removed"), str(kf_id), packb([int(anchor_gid), T_anchor_kf]))
 
     @staticmethod
     def put_points(pipe, agent: str, ids, pos, ref_g, desc) -> None:
@@ -297,13 +263,13 @@ class Store:
         rec["desc"] = desc
         raw = rec.tobytes()
         n = MP_DTYPE.itemsize
-        pipe.hset(_k_mps(agent), mapping={int(i): raw[j * n : (j + 1) * n]
+        pipe.hset(_k("mp", agent), mapping={int(i): raw[j * n : (j + 1) * n]
                                           for j, i in enumerate(ids)})  # fmt: skip
 
     @staticmethod
     def del_points(pipe, agent: str, ids) -> None:
         if len(ids):
-            pipe.hdel(_k_mps(agent), *[int(i) for i in ids])
+            pipe.hdel(_k("mp", agent), *[int(i) for i in ids])
 
     @staticmethod
     def put_aliases(pipe, aliases: dict[int, int]) -> None:
@@ -314,19 +280,19 @@ class Store:
     def put_loops(pipe, map_id: str, loops) -> None:
         """Loop constraints ``(q, c, S_q_c)`` of a map."""
         for q, c, S in loops:
-            pipe.hset(_k_map_loops(map_id), f"{q}:{c}", _b8(S))
+            pipe.hset(_k("map", map_id, "loops"), f"{q}:{c}", _b8(S))
 
     @staticmethod
     def retire_map(pipe, source: str, target: str) -> None:
         """``source`` was fused into ``target`` (whose writes carry its keyframes)."""
-        pipe.hset(_k_map(source), mapping={"merged_into": target, "agents": ""})
+        pipe.hset(_k("map", source), mapping={"merged_into": target, "agents": ""})
         pipe.srem(_MAPS, source)
-        pipe.delete(_k_map_kfs(source), _k_map_loops(source))
+        pipe.delete(_k("map", source, "kfs"), _k("map", source, "loops"))
 
     def put_pose(self, pose: LivePose) -> None:
         data = pose.encode()
         p = self.r.pipeline(transaction=False)
-        p.set(_k_agent_pose(pose.agent), data)
+        p.set(_k("agent", pose.agent, "pose"), data)
         p.publish(POSE_CHANNEL, data)
         p.execute()
 
@@ -336,7 +302,7 @@ class Store:
         return {int(v): k.decode() for k, v in self.r.hgetall(_AGENT_INDEX).items()}
 
     def agent_state(self, agent: str) -> AgentState | None:
-        h = self.r.hgetall(_k_agent(agent))
+        h = self.r.hgetall(_k("agent", agent))
         if not h or b"index" not in h:
             return None
         return AgentState(
@@ -348,7 +314,7 @@ class Store:
     def removed(self, agent: str) -> dict[int, tuple[int, np.ndarray]]:
         """Culled keyframe id -> (anchor gid, T_anchor_kf)."""
         out = {}
-        for kid, v in self.r.hgetall(_k_agent_removed(agent)).items():
+        for kid, v in self.r.hgetall(_k("agent", agent, "removed")).items():
             g, T = unpackb(v)
             out[int(kid)] = (int(g), np.array(T))
         return out
@@ -358,7 +324,7 @@ class Store:
 
     def loops(self, map_id: str) -> list[tuple[int, int, np.ndarray]]:
         out = []
-        for field, v in self.r.hgetall(_k_map_loops(map_id)).items():
+        for field, v in self.r.hgetall(_k("map", map_id, "loops")).items():
             q, c = (int(x) for x in field.decode().split(":"))
             out.append((q, c, _f8(v, (4, 4))))
         return out
@@ -368,7 +334,7 @@ class Store:
         return sorted(a.decode() for a in self.r.smembers(_AGENTS))
 
     def agent_info(self, agent: str) -> dict | None:
-        h = self.r.hgetall(_k_agent(agent))
+        h = self.r.hgetall(_k("agent", agent))
         if not h:
             return None
         S = Sim3.from_array(_f8(h[b"S_m_l"], (8,))) if b"S_m_l" in h else Sim3.identity()
@@ -377,20 +343,20 @@ class Store:
             "map_id": h.get(b"map", b"").decode(),
             "S_m_l": S,
             "kf_high": int(h.get(b"kf_high", -1)),
-            "n_kf": int(self.r.zcard(_k_agent_kfs(agent))),
-            "n_mp": int(self.r.hlen(_k_mps(agent))),
+            "n_kf": int(self.r.zcard(_k("agent", agent, "kfs"))),
+            "n_mp": int(self.r.hlen(_k("mp", agent))),
             "first_ns": int(h.get(b"first_ns", 0)),
         }
 
     def latest_pose(self, agent: str) -> LivePose | None:
-        b = self.r.get(_k_agent_pose(agent))
+        b = self.r.get(_k("agent", agent, "pose"))
         return None if b is None else LivePose.decode(b)
 
     def keyframe_ids(self, agent: str) -> list[int]:
-        return [int(x) for x in self.r.zrange(_k_agent_kfs(agent), 0, -1)]
+        return [int(x) for x in self.r.zrange(_k("agent", agent, "kfs"), 0, -1)]
 
     def mappoint_ids(self, agent: str) -> list[int]:
-        return sorted(int(x) for x in self.r.hkeys(_k_mps(agent)))
+        return sorted(int(x) for x in self.r.hkeys(_k("mp", agent)))
 
     def keyframes(self, agent: str, ids: list[int] | None = None, full: bool = False):
         """The agent's stored keyframes (``ids``, default all), sorted by id. Without
@@ -402,7 +368,7 @@ class Store:
             names += [b"gid", b"mpg", b"gparent", b"kp", b"oct", b"desc"]
         p = self.r.pipeline(transaction=False)
         for i in ids:
-            p.hmget(_k_kf(agent, i), names)
+            p.hmget(_k("kf", agent, i), names)
         out: list[StoredKeyframe] = []
         for i, v in zip(ids, p.execute(), strict=True):
             if v[0] is None:
@@ -423,7 +389,7 @@ class Store:
 
     def map_point_records(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
         """(ids, records of MP_DTYPE) of an agent's map points, sorted by id."""
-        h = self.r.hgetall(_k_mps(agent))
+        h = self.r.hgetall(_k("mp", agent))
         if not h:
             return np.zeros(0, np.int64), np.zeros(0, MP_DTYPE)
         ids = np.array([int(k) for k in h], np.int64)
@@ -456,10 +422,10 @@ class Store:
         return sorted(m.decode() for m in self.r.smembers(_MAPS))
 
     def map_info(self, map_id: str) -> dict | None:
-        h = self.r.hgetall(_k_map(map_id))
+        h = self.r.hgetall(_k("map", map_id))
         if not h:
             return None
-        members = [m.decode() for m in self.r.smembers(_k_map_kfs(map_id))]
+        members = [m.decode() for m in self.r.smembers(_k("map", map_id, "kfs"))]
         agents = sorted(
             {m.split(":", 1)[0] for m in members}
             | set(a for a in h.get(b"agents", b"").decode().split(",") if a)
@@ -474,7 +440,7 @@ class Store:
 
     def map_keyframes(self, map_id: str) -> list[tuple[str, int]]:
         out = []
-        for m in self.r.smembers(_k_map_kfs(map_id)):
+        for m in self.r.smembers(_k("map", map_id, "kfs")):
             a, _, i = m.decode().rpartition(":")
             out.append((a, int(i)))
         return sorted(out)
@@ -484,7 +450,7 @@ class Store:
         """(query gid, candidate gid) of every loop edge of ``map_id``, without reading
         the constraints themselves."""
         out = []
-        for f in self.r.hkeys(_k_map_loops(map_id)):
+        for f in self.r.hkeys(_k("map", map_id, "loops")):
             q, _, c = f.decode().partition(":")
             out.append((int(q), int(c)))
         return sorted(out)
@@ -511,7 +477,7 @@ class Store:
         ids = self.keyframe_ids(agent)
         p = self.r.pipeline(transaction=False)
         for i in ids:
-            p.hget(_k_kf(agent, i), "pose")
+            p.hget(_k("kf", agent, i), "pose")
         keep, poses = [], []
         for i, b in zip(ids, p.execute(), strict=True):
             if b is not None:

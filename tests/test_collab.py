@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from feeding import feed_mapper as _feed
 
-from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.mapper.merge import fuse_matched, move_map
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest
@@ -15,7 +15,7 @@ from services.mapper.service import MapperService
 from services.optimizer.service import OptimizerService, Superseded
 from shared.geometry import Sim3, exp_so3, se3_inv
 from shared.ids import gid, local_id_of
-from shared.messages import Ack, CorrectionMsg, Match, OptimizeRequest
+from shared.messages import CorrectionMsg, Match, OptimizeRequest
 from shared.settings import Settings
 from shared.store import Store, connect
 from shared.trajectory import Trajectory, load_euroc_gt
@@ -55,21 +55,6 @@ def test_move_map_carries_poses_points_and_graph_through_a_similarity():
     fres = fuse_matched(dst, np.array([100, 101]), np.array([145, 101]))
     assert len(fres.aliases) == 1 and 145 not in dst.mps or 100 not in dst.mps
     assert dst.check_invariants() == []
-
-
-def _feed(svc: MapperService, agent: str, sim: SimAgent) -> None:
-    comm = CommModule(agent, rate_hz=1e9)
-    t = 0.0
-    while not sim.done:
-        _, _, kf = sim.step()
-        if kf is None:
-            continue
-        comm.add_keyframe(kf.kf)
-        comm.add_map_points(kf.new_mps)
-        data = comm.next_message(t, 0, kf.kf.id).encode()
-        ack = svc.process_kf_bytes(f"hivemap/agent/{agent}/up/kf", data, 0)
-        comm.on_ack(Ack(agent, ack.map_id, ack.kf_ids, ack.mp_ids, 0, 0), t)
-        t += 1.0
 
 
 def _traj(svc: MapperService, agent: str) -> Trajectory:

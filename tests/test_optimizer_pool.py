@@ -13,12 +13,11 @@ import time
 from pathlib import Path
 
 import pytest
+from feeding import feed_mapper as _feed
 
-from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.mapper.service import MapperService
 from shared.jobs import K_JOBS, JobQueue
-from shared.messages import Ack
 from shared.metrics import sample_value
 from shared.settings import Settings
 from shared.store import connect
@@ -26,21 +25,6 @@ from shared.trajectory import Trajectory, load_euroc_gt
 
 HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
 CLAIM_IDLE_S = 2.0
-
-
-def _feed(svc: MapperService, agent: str, sim: SimAgent) -> None:
-    comm = CommModule(agent, rate_hz=1e9)
-    t = 0.0
-    while not sim.done:
-        _, _, kf = sim.step()
-        if kf is None:
-            continue
-        comm.add_keyframe(kf.kf)
-        comm.add_map_points(kf.new_mps)
-        data = comm.next_message(t, 0, kf.kf.id).encode()
-        ack = svc.process_kf_bytes(f"hivemap/agent/{agent}/up/kf", data, 0)
-        comm.on_ack(Ack(agent, ack.map_id, ack.kf_ids, ack.mp_ids, 0, 0), t)
-        t += 1.0
 
 
 def _wait(cond, timeout: float, step: float = 0.02):

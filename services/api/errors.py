@@ -2,17 +2,28 @@
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 from fastapi import HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from .metrics import API_REJECTED
 
+T = TypeVar("T")
+
 
 class NotFound(HTTPException):
     def __init__(self, what: str, ident: str) -> None:
         super().__init__(404, detail=f"unknown {what} {ident!r}")
         self.reason = f"unknown_{what}"
+
+
+def found(value: T | None, what: str, ident: str) -> T:
+    """``value``, or a 404 naming what was not found."""
+    if value is None:
+        raise NotFound(what, ident)
+    return value
 
 
 async def http_error(request: Request, exc: HTTPException) -> JSONResponse:

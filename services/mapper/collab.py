@@ -72,6 +72,16 @@ log = logging.getLogger(__name__)
 SERVICE = "mapper"
 
 
+def _decode(cls, key: str, payload: bytes):
+    """The message, or None when it does not decode (counted and logged)."""
+    try:
+        return cls.decode(payload)
+    except DecodeError as e:
+        REJECTED.labels(SERVICE, key, "invalid").inc()
+        log.warning("rejected %s on %s: %s", cls.__name__, key, e)
+        return None
+
+
 def _spread(n: int, k: int) -> np.ndarray:
     """Indices of at most k of n items, evenly spread."""
     if n <= k:
@@ -151,13 +161,8 @@ class Collaboration:
 
     # --- matches -----------------------------------------------------------------------
     def on_match_bytes(self, key: str, payload: bytes) -> str | None:
-        try:
-            m = Match.decode(payload)
-        except DecodeError as e:
-            REJECTED.labels(SERVICE, key, "invalid").inc()
-            log.warning("rejected match on %s: %s", key, e)
-            return None
-        return self.on_match(m)
+        m = _decode(Match, key, payload)
+        return None if m is None else self.on_match(m)
 
     def on_match(self, m: Match) -> str | None:
         """Apply a verified match; returns "merge", "loop" or None (ignored)."""
@@ -370,13 +375,8 @@ class Collaboration:
         return req
 
     def on_correction_bytes(self, key: str, payload: bytes) -> bool:
-        try:
-            c = CorrectionMsg.decode(payload)
-        except DecodeError as e:
-            REJECTED.labels(SERVICE, key, "invalid").inc()
-            log.warning("rejected correction on %s: %s", key, e)
-            return False
-        return self.on_correction(c)
+        c = _decode(CorrectionMsg, key, payload)
+        return c is not None and self.on_correction(c)
 
     def on_correction(self, c: CorrectionMsg) -> bool:
         reg = self.reg

@@ -12,7 +12,7 @@ from shared.store import Store
 from shared.trajectory import format_tum
 
 from ..deps import StoreDep
-from ..errors import NotFound
+from ..errors import NotFound, found
 from ..models import AgentOut, KeyframeOut, PoseOut, TrajectoryOut, pose_out
 
 router = APIRouter(prefix="/agents", tags=["agents"])
@@ -24,10 +24,7 @@ class TrajFormat(StrEnum):
 
 
 def _info(store: Store, agent: str) -> dict:
-    info = store.agent_info(agent)
-    if info is None:
-        raise NotFound("agent", agent)
-    return info
+    return found(store.agent_info(agent), "agent", agent)
 
 
 @router.get("", response_model=list[AgentOut])

@@ -10,17 +10,14 @@ from shared.store import Store
 
 from .. import feed
 from ..deps import StoreDep
-from ..errors import NotFound
+from ..errors import found
 from ..models import MapOut, PointsOut
 
 router = APIRouter(prefix="/maps", tags=["maps"])
 
 
 def _map(store: Store, map_id: str) -> dict:
-    info = store.map_info(map_id)
-    if info is None:
-        raise NotFound("map", map_id)
-    return info
+    return found(store.map_info(map_id), "map", map_id)
 
 
 @router.get("", response_model=list[MapOut])
