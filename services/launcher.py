@@ -13,6 +13,7 @@ import contextlib
 import json
 import logging
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -20,6 +21,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from pydantic import SecretStr
 
 from shared.redis_server import RedisServer, free_port
 from shared.runtime import set_priority
@@ -99,11 +102,29 @@ def service_plan(settings: Settings, scale: Scale | None = None) -> list[Service
                 **common,
                 "HIVEMAP_API_PORT": str(settings.api_port),
                 "HIVEMAP_API_HOST": settings.api_host,
+                "HIVEMAP_API_TOKEN": settings.api_token.get_secret_value(),
             },
             settings.api_port,
         )
     )
     return plan
+
+
+def api_token(settings: Settings, data_dir: str | None) -> str:
+    """The API token of a run: HIVEMAP_API_TOKEN if set; else the one kept in the data
+    directory, created there (owner-only) on first start; else a fresh one for this run."""
+    given = settings.api_token.get_secret_value()
+    if given:
+        return given
+    if data_dir is None:
+        return secrets.token_urlsafe(32)
+    path = Path(data_dir) / "api_token"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(secrets.token_urlsafe(32) + "\n")
+    return path.read_text().strip()
 
 
 def _hivemap_exe() -> list[str]:
@@ -230,12 +251,16 @@ class Stack:
                        "set HIVEMAP_API_PORT to use another port")  # fmt: skip
         if self.data_dir is not None:
             self._lock_data_dir()
-        self.redis = RedisServer(data_dir=self.data_dir, persist=self.data_dir is not None)
+        # A fresh password each start: the services get it in their environment (readable
+        # by this user only), and nothing else on the machine reaches the data without it.
+        self.redis = RedisServer(data_dir=self.data_dir, persist=self.data_dir is not None,
+                                 password=secrets.token_urlsafe(24))  # fmt: skip
         redis_url = self.redis.start()
         self._redis_started = time.monotonic()
         self.settings = s.model_copy(
             update={"redis_url": redis_url,
-                    "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]})}
+                    "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]}),
+                    "api_token": SecretStr(api_token(s, self.data_dir))}
         )  # fmt: skip
         for spec in service_plan(self.settings, self.scale):
             if spec.name == "redis" or (spec.name == "api" and not with_api):
@@ -269,6 +294,15 @@ class Stack:
         c = Child(name, argv, env, proc, supervised, preexec=preexec)
         self.children.append(c)
         return c
+
+    @property
+    def api_token(self) -> str:
+        return self.settings.api_token.get_secret_value()
+
+    @property
+    def viewer_url(self) -> str:
+        s = self.settings
+        return f"http://{s.api_host}:{s.api_port}/?token={self.api_token}"
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -417,10 +451,13 @@ def _print_urls(stack: Stack) -> None:
               box=None, padding=(0, 2))  # fmt: skip
     t.add_column(style="bold")
     t.add_column()
-    t.add_row("viewer", f"[link={api}/]{api}/[/link]  (live map, agents, merges and loops)")
+    # The viewer URL carries the API token, as notebook servers print theirs.
+    url = stack.viewer_url
+    t.add_row("viewer", f"[link={url}]{url}[/link]  (live map, agents, merges and loops)")
     t.add_row(
         "api",
-        f"{api}/docs  (REST: /agents, /maps), WebSocket {api.replace('http', 'ws', 1)}/ws/viewer",
+        f"{api}/docs  (REST: /agents, /maps; header Authorization: Bearer <token>), "
+        f"WebSocket {api.replace('http', 'ws', 1)}/ws/viewer?token=<token>",
     )
     for spec in service_plan(s, stack.scale):
         if spec.name not in ("router", "redis", "api"):

@@ -13,6 +13,7 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
+from urllib.parse import quote
 
 import redis
 
@@ -49,21 +50,40 @@ class RedisServer:
     """
 
     def __init__(
-        self, port: int | None = None, data_dir: str | None = None, persist: bool = False
-    ) -> None:
+        self, port: int | None = None, data_dir: str | None = None, persist: bool = False,
+        password: str | None = None,
+    ) -> None:  # fmt: skip
         self.port = port or free_port()
         self._tmp = None if data_dir else tempfile.TemporaryDirectory(prefix="hivemap-redis-")
         self.data_dir = data_dir or self._tmp.name
         self.persist = persist
+        # requirepass: every client must AUTH (``hivemap up`` always sets one).
+        self.password = password
+        self._conf: tempfile.TemporaryDirectory | None = None
         self.proc: subprocess.Popen | None = None
 
     @property
     def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
+        auth = f":{quote(self.password, safe='')}@" if self.password else ""
+        return f"redis://{auth}127.0.0.1:{self.port}/0"
+
+    def _config_file(self) -> list[str]:
+        """The password goes in an owner-only config file, not on the command line
+        (which every local user can read in ps)."""
+        if not self.password:
+            return []
+        if self._conf is None:
+            self._conf = tempfile.TemporaryDirectory(prefix="hivemap-redis-conf-")
+        path = Path(self._conf.name) / "redis.conf"
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(f'requirepass "{self.password}"\n')
+        return [str(path)]
 
     def argv(self) -> list[str]:
         args = [
-            find_redis_server(), "--port", str(self.port), "--bind", "127.0.0.1",
+            find_redis_server(), *self._config_file(), "--port", str(self.port),
+            "--bind", "127.0.0.1",
             "--dir", self.data_dir, "--save", "", "--protected-mode", "yes",
         ]  # fmt: skip
         args += ["--appendonly", "yes", "--appendfsync", "everysec"] if self.persist else [
@@ -75,7 +95,8 @@ class RedisServer:
         self.proc = subprocess.Popen(
             self.argv(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
         )
-        client = redis.Redis(host="127.0.0.1", port=self.port, socket_connect_timeout=0.5)
+        client = redis.Redis(host="127.0.0.1", port=self.port, password=self.password,
+                             socket_connect_timeout=0.5)  # fmt: skip
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -102,6 +123,9 @@ class RedisServer:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+        if self._conf is not None:
+            self._conf.cleanup()
+            self._conf = None
 
     def __enter__(self) -> str:
         return self.start()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 # Where `hivemap up` runs its router and where an agent looks for one unless told:
@@ -136,6 +136,13 @@ class Settings(BaseSettings):
     optimizer: OptimizerSettings = Field(default_factory=OptimizerSettings)
     api_host: str = "127.0.0.1"
     api_port: int = Field(8000, ge=0, le=65535)
+    # Bearer token every API endpoint but /health, /ready and /metrics requires ("" = none,
+    # allowed only while the API listens on loopback). SecretStr keeps it out of reprs/logs.
+    api_token: SecretStr = SecretStr("")
+    # Origins a browser may call the API from; empty = no CORS headers at all.
+    api_cors_origins: list[str] = Field(default_factory=list)
+    # Largest request body (the API only serves GETs) and WebSocket frame it accepts.
+    api_max_body_bytes: int = Field(16_384, ge=0)
     metrics_host: str = "127.0.0.1"
     # 0 = no HTTP metrics endpoint (tests read the registry directly).
     metrics_port: int = Field(0, ge=0, le=65535)

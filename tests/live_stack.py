@@ -82,8 +82,10 @@ def add_sim_agents(
     )  # fmt: skip
 
 
-def get_json(url: str, timeout: float = 5.0):
-    with urllib.request.urlopen(url, timeout=timeout) as r:
+def get_json(url: str, timeout: float = 5.0, token: str | None = None):
+    """GET a JSON document; ``token``: the stack's API token (``Stack.api_token``)."""
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=timeout) as r:
         return json.loads(r.read())
 
 

@@ -7,6 +7,7 @@ No Docker engine exists on these machines, so the configs are validated, not run
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -27,6 +28,13 @@ PROMETHEUS = ROOT / "deploy/prometheus/prometheus.yml"
 DASHBOARDS = ROOT / "deploy/grafana/dashboards"
 GRAFANA_DS = ROOT / "deploy/grafana/provisioning/datasources/prometheus.yml"
 GRAFANA_DASHBOARDS = ROOT / "deploy/grafana/provisioning/dashboards/hivemap.yml"
+# What an operator exports before `docker compose up` (README, "Security").
+SECRETS = {"HIVEMAP_API_TOKEN": "compose-test-token", "HIVEMAP_REDIS_PASSWORD": "pw"}
+REDIS_URL = (
+    "redis://:${HIVEMAP_REDIS_PASSWORD:?set HIVEMAP_REDIS_PASSWORD, see README Security}"
+    "@redis:6379/0"
+)
+
 # The plan's infrastructure: in compose they are the zenohd and redis images.
 INFRA = {"router": "zenohd", "redis": "redis"}
 
@@ -59,8 +67,14 @@ def test_compose_config_validates():
             "neither `docker compose` (v2 plugin) nor `docker-compose` (Debian package "
             "docker-compose) exists here: the compose file is only parsed by the other tests"
         )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
     r = subprocess.run([*tool, "-f", str(COMPOSE), "config", "-q"], capture_output=True,
-                       text=True, cwd=ROOT, timeout=120)  # fmt: skip
+                       text=True, cwd=ROOT, timeout=120, env=env)  # fmt: skip
+    # The secrets come from the environment: without them compose refuses to start.
+    assert r.returncode != 0 and "HIVEMAP_" in r.stderr, r.stderr
+    env.update(SECRETS)
+    r = subprocess.run([*tool, "-f", str(COMPOSE), "config", "-q"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=120, env=env)  # fmt: skip
     assert r.returncode == 0, r.stderr
 
 
@@ -101,7 +115,7 @@ def test_compose_topology_equals_hivemap_up(clean_env):
             assert env.get(key.removesuffix("_PORT") + "_HOST") == "0.0.0.0", (name, key)
         assert env["HIVEMAP_ZENOH__MODE"] == "client"
         assert json.loads(env["HIVEMAP_ZENOH__CONNECT"]) == ["tcp/zenohd:7447"]
-        assert env["HIVEMAP_REDIS_URL"] == "redis://redis:6379/0"
+        assert env["HIVEMAP_REDIS_URL"] == REDIS_URL
         deps = svc["depends_on"]
         assert {"zenohd", "redis"} <= set(deps), name
 
@@ -135,7 +149,7 @@ def test_compose_env_names_real_settings(clean_env):
                 assert hasattr(obj, part), f"{name}: {k} is no setting"
                 obj = getattr(obj, part)
         assert s.zenoh.connect == ["tcp/zenohd:7447"]
-        assert s.redis_url == "redis://redis:6379/0"
+        assert s.redis_url == REDIS_URL
         assert s.log_json is True
         for k in env:
             clean_env.delenv(k)
@@ -317,3 +331,10 @@ def test_grafana_provisioning_matches_compose_volumes():
     # The dashboards directory is mounted where the provider looks, and so is provisioning.
     assert f"./deploy/grafana/dashboards:{path}:ro" in vols
     assert "./deploy/grafana/provisioning:/etc/grafana/provisioning:ro" in vols
+
+
+def test_compose_redis_needs_a_password_and_publishes_no_port():
+    redis_svc = _compose_services()["redis"]
+    assert "ports" not in redis_svc
+    cmd = redis_svc["command"]
+    assert cmd[cmd.index("--requirepass") + 1].startswith("${HIVEMAP_REDIS_PASSWORD:?")

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -47,13 +48,17 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
+TOKEN = "launcher-test-token"
+
+
 def _get(url: str, timeout: float = 2.0):
-    with urllib.request.urlopen(url, timeout=timeout) as r:
+    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {TOKEN}"})
+    with urllib.request.urlopen(req, timeout=timeout) as r:
         return json.loads(r.read())
 
 
 def _env(api_port: int) -> dict[str, str]:
-    return {**os.environ, "HIVEMAP_API_PORT": str(api_port),
+    return {**os.environ, "HIVEMAP_API_PORT": str(api_port), "HIVEMAP_API_TOKEN": TOKEN,
             "HIVEMAP_MAPPER_METRICS_PORT": str(free_port()),
             "HIVEMAP_PLACEREC_METRICS_PORT": str(free_port()),
             "HIVEMAP_OPTIMIZER_METRICS_PORT": str(free_port())}  # fmt: skip
@@ -91,13 +96,19 @@ def test_up_serves_and_sigterm_leaves_no_orphans(tmp_path):
                  for p in _descendants(proc.pid) if _alive(p)}  # fmt: skip
         assert any(n.startswith("redis-server") for n in names)
         assert len(_descendants(proc.pid)) >= 4  # redis, router, mapper, api
+        assert _get(f"http://127.0.0.1:{port}/agents") == []
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/agents", timeout=2)
+            raise AssertionError("the API served /agents without the token")
+        except urllib.error.HTTPError as e:
+            assert e.code == 401
     finally:
         left = _stop(proc)
     assert proc.returncode == 0
     assert not left, f"orphans after SIGTERM: {left}"
     # It said where to look: the viewer, every service's metrics, Grafana under compose.
     said = proc.stdout.read()
-    assert "viewer" in said and f"http://127.0.0.1:{port}/ " in said, said
+    assert "viewer" in said and f"http://127.0.0.1:{port}/?token={TOKEN}" in said, said
     assert said.count("/metrics") >= 4 and "grafana" in said, said
     # Persistent by default, under the directory it ran in.
     assert (tmp_path / "hivemap-data" / "appendonlydir").is_dir()

@@ -91,7 +91,7 @@ def _finite_points(data: dict) -> int:
     )
 
 
-def _exercise_rejections(endpoint: str, api: str) -> None:
+def _exercise_rejections(endpoint: str, api: str, token: str) -> None:
     """What the rejection panels count: one undecodable keyframe batch on an agent's key,
     one request for an agent nobody knows. And one WebSocket connection."""
     import websockets.sync.client as ws_client
@@ -100,10 +100,14 @@ def _exercise_rejections(endpoint: str, api: str) -> None:
     with open_session(zs) as session:
         session.put(keys.agent_kf("agent-0"), b"\x93not a keyframe batch")
     try:
-        urllib.request.urlopen(f"{api}/agents/nobody/pose", timeout=5)
+        req = urllib.request.Request(
+            f"{api}/agents/nobody/pose", headers={"Authorization": f"Bearer {token}"}
+        )
+        urllib.request.urlopen(req, timeout=5)
     except urllib.error.HTTPError as e:
         assert e.code == 404
-    with ws_client.connect(api.replace("http://", "ws://") + "/ws/poses", open_timeout=10) as ws:
+    url = api.replace("http://", "ws://") + f"/ws/poses?token={token}"
+    with ws_client.connect(url, open_timeout=10) as ws:
         assert json.loads(ws.recv(timeout=10))["type"] == "subscribed"
 
 
@@ -129,8 +133,9 @@ def test_every_panel_returns_data(tmp_path):
             # within the first seconds would otherwise be in the first sample of their
             # counters, where rate() sees no increase.
             add_sim_agents(stack, 2)
-            wait_for(lambda: get_json(f"{api}/agents"), 60, "agents in the API")
-            _exercise_rejections(stack.zenoh_endpoint, api)
+            wait_for(lambda: get_json(f"{api}/agents", token=stack.api_token), 60,
+                     "agents in the API")  # fmt: skip
+            _exercise_rejections(stack.zenoh_endpoint, api, stack.api_token)
             # The rare events the overview counts: a merge, and an optimization finished.
             # (Deadlines are for a machine shared with other work; quiet, both come within
             # 20 s of the agents' start.)

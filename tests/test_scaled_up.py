@@ -55,7 +55,9 @@ def test_two_placerecs_and_two_optimizers_share_a_team(tmp_path):
         api = f"http://{s.api_host}:{s.api_port}"
         r = connect(s.redis_url)
         wait_for(lambda: len(JobQueue(r).workers(within_s=30)) == 2, 60, "two optimizers")
-        wait_for(lambda: len(get_json(f"{api}/agents")) == 2, 90, "both agents")
+        wait_for(
+            lambda: len(get_json(f"{api}/agents", token=stack.api_token)) == 2, 90, "both agents"
+        )
         wait_for(lambda: len(Store(r).maps()) == 1, 120, "the team's maps merged")
 
         def done() -> float:

@@ -41,7 +41,7 @@ class Up:
         self.mapper_port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
-        env.update({"HIVEMAP_API_PORT": str(self.api),
+        env.update({"HIVEMAP_API_PORT": str(self.api), "HIVEMAP_API_TOKEN": "supervised-token",
                     "HIVEMAP_MAPPER_METRICS_PORT": str(self.mapper_port),
                     "HIVEMAP_PLACEREC_METRICS_PORT": str(free_port()),
                     "HIVEMAP_OPTIMIZER_METRICS_PORT": str(free_port()),
@@ -68,7 +68,11 @@ class Up:
     def get(self, path: str):
         import urllib.request
 
-        with urllib.request.urlopen(f"http://127.0.0.1:{self.api}{path}", timeout=5) as r:
+        req = urllib.request.Request(
+            f"http://127.0.0.1:{self.api}{path}",
+            headers={"Authorization": "Bearer supervised-token"},
+        )
+        with urllib.request.urlopen(req, timeout=5) as r:
             return json.loads(r.read())
 
     def children(self) -> dict[str, int]:

@@ -33,12 +33,16 @@ def test_viewer_shows_the_team(tmp_path):
         pytest.skip(why)
     with live_stack(n_agents=2, start_agents=False) as stack:
         api = f"http://127.0.0.1:{stack.settings.api_port}"
-        with viewer_page(api + "/") as page:
+        with viewer_page(stack.viewer_url) as page:
             # The page is up before any agent: it must pick them up as they come.
             page.wait_for_function("window.hivemapViewer && window.hivemapViewer.frames > 5")
             # 30 s of flight at 2x: still flying after the merge on a loaded machine.
             add_sim_agents(stack, 2, frames="900:2100")
-            wait_for(lambda: len(get_json(f"{api}/agents")) == 2, 60, "two agents in the API")
+            wait_for(
+                lambda: len(get_json(f"{api}/agents", token=stack.api_token)) == 2,
+                60,
+                "two agents in the API",
+            )
             page.wait_for_function(
                 "Object.keys(window.hivemapViewer.drawn.poses).length == 2"
                 " && window.hivemapViewer.drawn.points > 500", timeout=60_000,

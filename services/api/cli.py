@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from shared.settings import Settings
 
@@ -11,11 +12,19 @@ def cmd_api(args: argparse.Namespace, settings: Settings) -> int:
     import uvicorn
 
     from .main import create_app
+    from .security import InsecureConfig
 
     port = args.port if args.port is not None else settings.api_port
-    # uvicorn handles SIGINT/SIGTERM itself and shuts down gracefully.
-    uvicorn.run(create_app(settings), host=settings.api_host, port=port,
-                log_level=settings.log_level.lower(), access_log=False)  # fmt: skip
+    try:
+        app = create_app(settings)
+    except InsecureConfig as e:
+        print(f"hivemap api: refusing to start: {e}", file=sys.stderr)
+        return 2
+    # uvicorn handles SIGINT/SIGTERM itself and shuts down gracefully. ws_max_size: the
+    # server never reads what a WebSocket client sends, so frames stay small.
+    uvicorn.run(app, host=settings.api_host, port=port, log_level=settings.log_level.lower(),
+                access_log=False, ws_max_size=max(settings.api_max_body_bytes, 1024),
+                h11_max_incomplete_event_size=16_384)  # fmt: skip
     return 0
 
 

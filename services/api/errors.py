@@ -29,7 +29,8 @@ def found(value: T | None, what: str, ident: str) -> T:
 async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
     reason = getattr(exc, "reason", f"http_{exc.status_code}")
     API_REJECTED.labels(reason).inc()
-    return JSONResponse({"error": str(exc.detail), "detail": None}, status_code=exc.status_code)
+    return JSONResponse({"error": str(exc.detail), "detail": None}, status_code=exc.status_code,
+                        headers=getattr(exc, "headers", None))  # fmt: skip
 
 
 async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -10,16 +10,23 @@ import time
 
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 
 from shared.settings import Settings
 from shared.store import Store, connect
 
 from .errors import http_error, validation_error
-from .metrics import REQUEST_SECONDS, REQUESTS
+from .metrics import API_REJECTED, REQUEST_SECONDS, REQUESTS
+from .models import ErrorOut
 from .routes import agents, health, live, maps, viewer, ws
+from .security import Protected, check_exposure
+
+UNAUTHORIZED = {401: {"model": ErrorOut, "description": "missing or wrong API token"}}
 
 
 def create_app(settings: Settings) -> FastAPI:
+    """Raises :class:`~.security.InsecureConfig` for a non-loopback host without a token."""
+    check_exposure(settings)
     app = FastAPI(
         title="HiveMap",
         version="0.1.0",
@@ -43,6 +50,33 @@ def create_app(settings: Settings) -> FastAPI:
         REQUEST_SECONDS.labels(path).observe(time.perf_counter() - t0)
         return response
 
-    for r in (agents.router, maps.router, health.router, ws.router, live.router, viewer.router):
-        app.include_router(r)
+    limit = settings.api_max_body_bytes
+
+    @app.middleware("http")
+    async def bound_body(request: Request, call_next):
+        # Every route is a GET: a body is never needed, so a large one is refused before
+        # anything reads it (a chunked body without a length is refused as well).
+        length = request.headers.get("content-length")
+        chunked = "chunked" in request.headers.get("transfer-encoding", "").lower()
+        if chunked or (length is not None and (not length.isdigit() or int(length) > limit)):
+            API_REJECTED.labels("body_too_large").inc()
+            return JSONResponse({"error": f"request body over {limit} bytes", "detail": None},
+                                status_code=413)  # fmt: skip
+        return await call_next(request)
+
+    if settings.api_cors_origins:
+        from fastapi.middleware.cors import CORSMiddleware
+
+        app.add_middleware(
+            CORSMiddleware, allow_origins=settings.api_cors_origins, allow_methods=["GET"],
+            allow_headers=["Authorization"],
+        )  # fmt: skip
+
+    app.include_router(health.router)
+    for r in (agents.router, maps.router):
+        app.include_router(r, dependencies=Protected, responses=UNAUTHORIZED)
+    app.include_router(viewer.router)  # the page route checks it; its script and style hold no data
+    # The WebSocket routes check the token themselves, before accepting.
+    app.include_router(ws.router)
+    app.include_router(live.router)
     return app

@@ -25,6 +25,7 @@ from shared.store import POSE_CHANNEL, LivePose
 from .. import feed
 from ..metrics import WS_CLIENTS
 from ..models import pose_out
+from ..security import refused
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -82,6 +83,8 @@ async def _state(ws: WebSocket) -> None:
 
 @router.websocket("/ws/viewer")
 async def ws_viewer(ws: WebSocket) -> None:
+    if await refused(ws):
+        return
     await ws.accept()
     WS_CLIENTS.inc()
     r = aioredis.Redis.from_url(ws.app.state.settings.redis_url)

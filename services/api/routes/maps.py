@@ -34,7 +34,7 @@ def get_map(map_id: str, store: StoreDep) -> MapOut:
 
 @router.get("/{map_id}/points", response_model=PointsOut)
 def map_points(
-    map_id: str, store: StoreDep, limit: int = Query(feed.POINTS_CAP, ge=1, le=1_000_000)
+    map_id: str, store: StoreDep, limit: int = Query(feed.POINTS_CAP, ge=1, le=200_000)
 ) -> PointsOut:
     """Map point positions in the map frame (every agent whose data is in the map). Past
     ``limit``, an even selection of them, shared out among the map's agents;

@@ -15,6 +15,7 @@ from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
 from ..errors import NotFound
+from ..security import Protected
 
 router = APIRouter()
 
@@ -22,7 +23,9 @@ STATIC = Path(__file__).resolve().parents[1] / "static"
 FILES = {"viewer.js": "text/javascript", "viewer.css": "text/css"}
 
 
-@router.get("/", include_in_schema=False)
+# The page needs the token (a viewer URL without it gets a clear 401, not a blank map);
+# its script and style hold no data and load without it, as a browser sends no token there.
+@router.get("/", include_in_schema=False, dependencies=Protected)
 def viewer() -> FileResponse:
     return FileResponse(STATIC / "viewer.html", media_type="text/html",
                         headers={"Cache-Control": "no-cache"})  # fmt: skip

@@ -13,6 +13,7 @@ from shared.store import POSE_CHANNEL, LivePose
 
 from ..metrics import WS_CLIENTS
 from ..models import pose_out
+from ..security import refused
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -20,6 +21,8 @@ router = APIRouter()
 
 @router.websocket("/ws/poses")
 async def ws_poses(ws: WebSocket) -> None:
+    if await refused(ws):
+        return
     await ws.accept()
     WS_CLIENTS.inc()
     r = aioredis.Redis.from_url(ws.app.state.settings.redis_url)

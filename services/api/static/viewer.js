@@ -25,7 +25,11 @@ function colour(a) {
 let backoff = 500;
 function connect() {
   const base = location.pathname.replace(/[^/]*$/, "");
-  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + base + "ws/viewer");
+  // The API token comes in the page's URL (?token=, as `hivemap up` prints it); a
+  // WebSocket takes no header, so it goes on as a query parameter.
+  const token = new URLSearchParams(location.search).get("token");
+  const auth = token ? "?token=" + encodeURIComponent(token) : "";
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + base + "ws/viewer" + auth);
   ws.onopen = () => { S.connected = true; backoff = 500; setConn("live", "live"); };
   ws.onmessage = (e) => { S.lastMsg = performance.now(); stats.messages++; onMessage(JSON.parse(e.data)); };
   ws.onclose = () => {
