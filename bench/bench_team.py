@@ -215,7 +215,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         "camera": camera, "inject": {k: v for k, v in os.environ.items()
                                      if k.startswith("HIVEMAP_INJECT__")}, "out": str(out),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
-                            ("keyframes", "track_ms_median", "track_ms_p95", "longest_lost_s",
+                            ("keyframes", "track_s_median", "track_s_p95", "longest_lost_s",
                          "chunks", "corrections", "corrections_held", "foreign_points")}
                         for a, v in doc["agents"].items()},
     }  # fmt: skip

@@ -55,6 +55,11 @@ AGENT_ACK_LATENCY = Histogram(
     ["agent"],
     buckets=LATENCY_BUCKETS,
 )
+AGENT_FRAMES_DROPPED = Counter(
+    "hivemap_agent_frames_dropped_total",
+    "Live-camera frames the agent dropped because it was still busy with an earlier one",
+    ["agent"],
+)
 RESENT = Counter(
     "hivemap_resent_total", "Keyframes and map points sent again", ["agent", "kind", "reason"]
 )

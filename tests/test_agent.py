@@ -11,7 +11,7 @@ import pytest
 import zenoh
 
 from services.agent.runner import Agent, online_trajectory
-from services.agent.sources import open_source
+from services.agent.sources import ImageSource, open_source
 from services.mapper.service import MapperService
 from shared.redis_server import free_port
 from shared.settings import Settings, ZenohSettings
@@ -182,3 +182,51 @@ def test_progress_reporter_warns_while_no_router_answers_and_says_when_one_does(
     solo = ProgressReporter("B", None, snap, every_s=5)
     state.update(routers=0, acked=0)
     assert all(lvl == logging.INFO for i in range(100) for lvl, _ in solo.check(i * 0.1))
+
+
+class _Stored(ImageSource):
+    """Frames rendered once, delivered without rendering cost (as a camera would)."""
+
+    def __init__(self, spec: str) -> None:
+        src = open_source(spec)
+        self.camera, self.name, self.ground_truth = src.camera, src.name, src.ground_truth
+        self.frames = list(src)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self):
+        return iter(self.frames)
+
+
+def test_realtime_drops_frames_when_the_tracker_is_slow():
+    """A live camera does not wait: with tracking three frame periods long, the agent
+    tracks the newest frame and drops (and counts) the ones that came meanwhile, so its
+    latency stays bounded instead of growing with every frame."""
+    from shared.metrics import AGENT_FRAMES_DROPPED
+
+    src = _Stored("synthetic:MH01?frames=1200:1260")
+    period = float(np.median(np.diff(src.ground_truth.stamps_ns))) * 1e-9
+    agent = Agent(Settings(), "slow", src, use_server=False, realtime=True)
+    track = agent.vo.track
+
+    def slow_track(img, stamp):
+        t = time.monotonic()
+        r = track(img, stamp)
+        time.sleep(max(0.0, 3 * period - (time.monotonic() - t)))
+        return r
+
+    agent.vo.track = slow_track
+    counter = AGENT_FRAMES_DROPPED.labels("slow")
+    before = counter._value.get()
+    try:
+        stats = agent.run()
+    finally:
+        agent.close()
+    assert stats.frames + stats.dropped_frames == len(src)
+    assert stats.dropped_frames >= 0.5 * len(src), stats.dropped_frames
+    assert counter._value.get() - before == stats.dropped_frames
+    # Never more than the frame in hand behind: 60 frames at 3 periods each without
+    # dropping would end 120 periods late.
+    assert max(stats.latency_s) < 5 * period, max(stats.latency_s)
+    assert stats.to_dict()["dropped_frames"] == stats.dropped_frames

@@ -115,7 +115,7 @@ def test_twenty_percent_loss_every_keyframe_stored(settings, mapper, world):
     lossy = _run_agent(lossy_settings, "L", SimAgent(gt, world, drift=DriftModel.zero(), seed=1),
                        speed=2.0, flush_timeout_s=60)  # fmt: skip
     store = Store(connect(settings.redis_url))
-    assert lossy.all_acked and lossy.kf_lost_buffer_full == 0
+    assert lossy.all_acked and lossy.kf_lost_unacked == 0
     assert store.keyframe_ids("L") == list(range(lossy.keyframes))
     assert len(store.mappoint_ids("L")) == lossy.map_points
     drops = sample_value("hivemap_injected_drops_total",

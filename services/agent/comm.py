@@ -183,6 +183,9 @@ class CommModule:
             if upd.mp_ids is not None:
                 kf.mp_ids = upd.mp_ids
             return
+        prev = self.kf_updates.get(upd.id)
+        if prev is not None and upd.mp_ids is None and prev.mp_ids is not None:
+            upd.mp_ids = prev.mp_ids  # new poses, the associations still to send
         self.kf_updates[upd.id] = upd
 
     def update_map_point(self, mp_id: int, ref_kf: int, p_ref: np.ndarray) -> None:

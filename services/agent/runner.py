@@ -1,9 +1,10 @@
-"""The real agent: image source -> VO -> bounded local map -> communication module.
+"""The real agent: image source -> monocular VO -> bounded local map -> the agent loop.
 
-The VO never waits for the network: the Zenoh session is opened in the background
-(a client retries until a router is reachable), and until then keyframes and map
-points wait in the communication module, bounded by the local map's buffer rules
-(CCM-SLAM §4.2). Every frame's online pose goes to a TUM file.
+:class:`VOProducer` is the VO side of :class:`~services.agent.loop.AgentLoop`: it tracks
+each image, turns new keyframes, map points and local-BA changes into messages for the
+communication module, bounds the local map (CCM-SLAM §4.2: past N + B keyframes the
+oldest go, unacknowledged ones are lost) and takes the server's map points near KF_ref
+into tracking. :class:`Agent` is the loop with this producer.
 
 The VO runs in its own frame ``l`` and is never moved. What the agent reports as its
 pose is the VO pose mapped through the latest correction from the server
@@ -11,253 +12,85 @@ pose is the VO pose mapped through the latest correction from the server
 since the agent was last in a place the server's map knows, taken out by the
 map's loop closures, merges and global optimization -- the map -> odometry split of
 ROS navigation. Without a server (or with feedback off) the correction stays the
-identity and the reported pose is the VO's.
+identity and the reported pose is the VO's. Every frame's reported pose goes to a TUM
+file.
 """
 
 from __future__ import annotations
 
-import logging
-import queue
-import threading
-import time
-from dataclasses import dataclass, field
+import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from shared import keys
-from shared.geometry import Sim3, se3_inv
-from shared.messages import (
-    Ack,
-    DecodeError,
-    KeyframeUpdate,
-    MapChunk,
-    MapPoints,
-    NewKeyframe,
-    PoseUpdate,
-)
-from shared.metrics import AGENT_ACK_LATENCY, REJECTED
+from shared.geometry import se3_inv
+from shared.messages import KeyframeUpdate, MapChunk, MapPoints, NewKeyframe
 from shared.settings import Settings
 from shared.trajectory import Trajectory, format_tum
 
 from .comm import CommModule
-from .health import HealthMeter
 from .local_map_trim import KfInfo, trim
-from .progress import ProgressReporter, Snapshot
-from .reported import ReportedPose
+from .loop import AgentLoop, AgentStats, Frame, Step
 from .sources import ImageSource
+from .vo.ba_worker import BAWorker
 from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
 
-log = logging.getLogger(__name__)
 
+class VOProducer:
+    """The monocular VO on an image source, as a producer of the agent loop."""
 
-@dataclass
-class AgentStats:
-    frames: int = 0
-    keyframes: int = 0
-    lost_frames: int = 0
-    longest_lost_s: float = 0.0
-    track_ms: list[float] = field(default_factory=list)
-    map_ms: list[float] = field(default_factory=list)
-    kf_trimmed: int = 0
-    kf_lost_unacked: int = 0
-    foreign_points: int = 0  # server points taken into the local map
-    chunks: int = 0  # server map chunks received for a keyframe still held
-    corrections: int = 0  # frame corrections taken from the server
-    corrections_held: int = 0  # ... and held back by the gate (they contradicted the VO)
-    server_maps: list[str] = field(default_factory=list)  # the server maps it was in, in order
+    uses_map = True
 
-    def summary(self) -> dict:
-        t = np.array(self.track_ms) if self.track_ms else np.zeros(1)
-        m = np.array(self.map_ms) if self.map_ms else np.zeros(1)
-        return {
-            "frames": self.frames, "keyframes": self.keyframes, "lost_frames": self.lost_frames,
-            "longest_lost_s": self.longest_lost_s,
-            "track_ms_median": float(np.median(t)), "track_ms_p95": float(np.percentile(t, 95)),
-            "map_ms_per_kf_median": float(np.median(m)),
-            "map_ms_per_kf_p95": float(np.percentile(m, 95)),
-            "kf_trimmed": self.kf_trimmed, "kf_lost_unacked": self.kf_lost_unacked,
-            "foreign_points": self.foreign_points, "chunks": self.chunks,
-            "corrections": self.corrections, "corrections_held": self.corrections_held,
-            "server_maps": self.server_maps,
-        }  # fmt: skip
-
-
-class Agent:
-    def __init__(self, settings: Settings, agent_id: str, source: ImageSource,
-                 use_server: bool = True, realtime: bool = False, n_local: int = 50,
-                 n_buffer: int = 50, vo_params: VOParams | None = None) -> None:  # fmt: skip
-        keys.check_id(agent_id, "agent")
-        self.settings = settings
-        self.agent = agent_id
+    def __init__(self, source: ImageSource, agent_id: str, n_local: int = 50,
+                 n_buffer: int = 50, vo_params: VOParams | None = None,
+                 background_ba: bool = False) -> None:  # fmt: skip
         self.source = source
-        self.use_server = use_server
-        self.realtime = realtime
+        self.camera = source.camera
+        self.agent = agent_id
         self.n_local, self.n_buffer = n_local, n_buffer
         self.vo = VisualOdometry(source.camera, vo_params)
-        c = settings.comm
-        self.comm = CommModule.from_settings(agent_id, c)
-        self.stats = AgentStats()
-        self.health = HealthMeter()
-        self.poses: list[tuple[int, np.ndarray]] = []  # online: VO pose through S_g_l
-        self.vo_poses: list[tuple[int, np.ndarray]] = []  # the VO's own
-        self.S_g_l = Sim3.identity()  # VO frame -> frame corrected by the server's map
-        self.reported = ReportedPose()  # gates S_g_l and keeps the reported pose smooth
+        if background_ba:
+            self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
-        self.bus = None
-        self._session = None
-        self._ack_q: queue.Queue = queue.Queue()
         self._sent_kfs: set[int] = set()
-        self._stop = threading.Event()
-        ep = settings.zenoh.connect[0] if use_server and settings.zenoh.connect else None
-        self._reporter = ProgressReporter(agent_id, ep, self._progress)
 
-    # --- network (background) -----------------------------------------------------------
-    def _connect(self) -> None:
-        from shared.transport import Bus, open_session
+    def bind(self, comm: CommModule, stats: AgentStats) -> None:
+        self.comm, self.stats = comm, stats
 
-        zs = self.settings.zenoh.model_copy(update={"connect_timeout_ms": -1})
-        try:
-            session = open_session(zs)
-        except Exception:
-            log.exception("zenoh session failed; flying without a server")
-            return
-        if self._stop.is_set():
-            session.close()
-            return
-        self._session = session
-        bus = Bus(session, "agent", self.settings.inject)
-        bus.subscribe(keys.agent_ack(self.agent), self._ack_q)
-        bus.subscribe(keys.agent_map(self.agent), self._ack_q, maxsize=4)
-        self.bus = bus
-        log.info("connected to the server", extra={"agent": self.agent})
+    def frames(self) -> Iterator[Frame]:
+        for f in self.source:
+            yield Frame(f.stamp_ns, f.image)
 
-    # --- main loop ------------------------------------------------------------------------
-    def run(self) -> AgentStats:
-        if self.use_server:
-            threading.Thread(target=self._connect, name="agent-connect", daemon=True).start()
-        self._reporter.start()
-        t_start = time.monotonic()
-        stamp0 = prev_stamp = None
-        lost_since = None
-        for fr in self.source:
-            if self._stop.is_set():
-                break
-            due = period = None
-            if self.realtime:
-                stamp0 = fr.stamp_ns if stamp0 is None else stamp0
-                due = t_start + (fr.stamp_ns - stamp0) * 1e-9
-                if prev_stamp is not None:
-                    period = (fr.stamp_ns - prev_stamp) * 1e-9
-                prev_stamp = fr.stamp_ns
-                while time.monotonic() < due:
-                    self._service(min(due - time.monotonic(), 0.02))
-            r = self.vo.track(fr.image, fr.stamp_ns)
-            self.stats.frames += 1
-            self.health.frame(time.monotonic(), due, period)
-            self.stats.track_ms.append(r.track_s * 1e3)
-            if r.T_w_c is not None:
-                self.vo_poses.append((fr.stamp_ns, r.T_w_c))
-                was_lost = lost_since is not None
-                self.poses.append((fr.stamp_ns, self.reported.update(r.T_w_c, r.state, r.T_pred,
-                                                                     was_lost)))  # fmt: skip
-            if r.state == "lost":
-                self.stats.lost_frames += 1
-                lost_since = fr.stamp_ns if lost_since is None else lost_since
-                self.stats.longest_lost_s = max(self.stats.longest_lost_s,
-                                                (fr.stamp_ns - lost_since) * 1e-9)  # fmt: skip
-            else:
-                lost_since = None
-            if r.keyframe is not None:
-                self.kf_poses.append((r.keyframe.stamp_ns, r.keyframe.T_w_c.copy()))
-                self.stats.keyframes += 1
-                self.stats.map_ms.append(r.map_s * 1e3)
-                self._on_keyframe(r)
-            self._publish_pose(r)
-            self._service(0.0)
-        deadline = time.monotonic() + 30
-        while self._flushing() and time.monotonic() < deadline:
-            self._service(0.05)
-        self.stats.kf_lost_unacked = self.comm.stats.kf_dropped_unacked
-        self._reporter.stop()
-        return self.stats
+    def step(self, frame: Frame) -> Step:
+        r = self.vo.track(frame.data, frame.stamp_ns)
+        s = Step(r.stamp_ns, r.T_w_c, r.state, T_pred=r.T_pred, track_s=r.track_s,
+                 map_s=r.map_s)  # fmt: skip
+        if r.keyframe is not None:
+            self.kf_poses.append((r.keyframe.stamp_ns, r.keyframe.T_w_c.copy()))
+            s.keyframe, s.new_points = True, len(r.new_points)
+            self._on_keyframe(r)
+        self._after_ba()
+        if self.vo.kfs:
+            ref = self.vo.kfs[max(self.vo.kfs)]
+            s.kf_ref, s.T_l_ref = ref.id, ref.T_w_c
+        return s
 
-    def _progress(self) -> Snapshot:
-        """Counters only (read from the reporter's thread: no iteration over live maps)."""
-        from shared.transport import router_count
+    def poll(self) -> None:
+        if self.vo.poll_mapping():
+            self._after_ba()
 
-        c, maps = self.comm, self.stats.server_maps
-        total = len(self.source) if hasattr(self.source, "__len__") else None
-        return Snapshot(self.stats.frames, total, self.vo.state, self.stats.keyframes,
-                        len(c.acked_kfs) + len(c.first_sent_at), len(c.acked_kfs), len(c.kfs),
-                        maps[-1] if maps else None, router_count(self._session))  # fmt: skip
-
-    def _flushing(self) -> bool:
-        """After the last frame: keep going while a server may still take our data."""
-        return self.use_server and (self.bus is None or self.comm.pending)
+    def finish(self) -> None:
+        while self.vo.poll_mapping(wait=True):
+            self._after_ba()
 
     def close(self) -> None:
-        self._stop.set()
-        self._reporter.stop()
-        if self.bus is not None:
-            self.bus.close()
-        if self._session is not None:
-            self._session.close()
+        if self.vo.ba_worker is not None:
+            self.vo.ba_worker.close()
+            self.vo.ba_worker = None
 
-    def _service(self, wait: float) -> None:
-        try:
-            item = self._ack_q.get(timeout=wait) if wait > 0 else self._ack_q.get_nowait()
-            self._on_ack(item.payload, item.key)
-            while True:
-                item = self._ack_q.get_nowait()
-                self._on_ack(item.payload, item.key)
-        except queue.Empty:
-            pass
-        if self.bus is None:
-            return
-        now = time.monotonic()
-        self.comm.check_timeouts(now)
-        msg = self.comm.next_message(now, time.time_ns(), max(self.vo.kfs, default=-1))
-        if msg is not None:
-            data = msg.encode()
-            self.bus.put(keys.agent_kf(self.agent), data)
-            self.comm.record_sent(len(data))
-
-    def _on_ack(self, payload: bytes, key: str) -> None:
-        if key.endswith("/down/map"):
-            self._on_chunk(payload, key)
-            return
-        try:
-            ack = Ack.decode(payload)
-        except DecodeError as e:
-            REJECTED.labels("agent", key, "invalid").inc()
-            log.warning("bad ack: %s", e)
-            return
-        maps = self.stats.server_maps
-        if not maps or maps[-1] != ack.map_id:
-            # The server merged our map with another agent's: we fly in a shared frame now.
-            if maps:
-                log.info("server map %s merged into %s", maps[-1], ack.map_id,
-                         extra={"agent": self.agent})  # fmt: skip
-            maps.append(ack.map_id)
-        for lat in self.comm.on_ack(ack, time.monotonic()):
-            AGENT_ACK_LATENCY.labels(self.agent).observe(lat)
-
-    def _on_chunk(self, payload: bytes, key: str) -> None:
+    def on_chunk(self, c: MapChunk) -> None:
         """Server map data near KF_ref augments the local map."""
-        try:
-            c = MapChunk.decode(payload)
-        except DecodeError as e:
-            REJECTED.labels("agent", key, "invalid").inc()
-            log.warning("bad map chunk: %s", e)
-            return
-        if c.S_g_l is not None:
-            S = Sim3.from_matrix(c.S_g_l)
-            if self.reported.offer(S):
-                self.S_g_l = S
-                self.stats.corrections += 1
-            else:
-                self.stats.corrections_held += 1
         ref = self.vo.kfs.get(c.kf_ref)
         if ref is None:
             return
@@ -274,19 +107,6 @@ class Agent:
         pos = c.p_ref[sel] @ ref.T_w_c[:3, :3].T + ref.T_w_c[:3, 3]
         keys_ = [(c.mp_agents[j], int(c.mp_ids[j])) for j in sel]
         self.stats.foreign_points += self.vo.add_foreign_points(keys_, pos, c.mp_descriptors[sel])
-
-    def _publish_pose(self, r: FrameResult) -> None:
-        # Lost, the agent still reports (its last pose, marked lost): the server tells a
-        # lost agent from a disconnected one by whether messages keep coming.
-        T = r.T_w_c if r.T_w_c is not None else (self.vo_poses[-1][1] if self.vo_poses else None)
-        if self.bus is None or T is None or not self.vo.kfs:
-            return
-        ref = self.vo.kfs[max(self.vo.kfs)]
-        msg = PoseUpdate(self.agent, r.stamp_ns, T, ref.id, se3_inv(ref.T_w_c) @ T,
-                         r.state, **self.health.fields(self.comm))  # fmt: skip
-        data = msg.encode()
-        self.bus.put(keys.agent_pose(self.agent), data, reliable=False)
-        self.health.pose_bytes += len(data)
 
     # --- local map -> messages ------------------------------------------------------------
     def _own_ids(self, mp: np.ndarray) -> np.ndarray:
@@ -325,7 +145,7 @@ class Agent:
                 id=kid, stamp_ns=k.stamp_ns, T_l_kf=k.T_w_c.copy(), pred_id=pred,
                 T_pred_kf=self._rel(k, pred), parent_id=par, T_par_kf=self._rel(k, par),
                 keypoints=k.f.kp, octaves=k.f.octave, descriptors=k.f.desc,
-                mp_ids=self._own_ids(k.mp), calib=self.source.camera.to_array(),
+                mp_ids=self._own_ids(k.mp), calib=self.camera.to_array(),
             ))  # fmt: skip
             self._sent_kfs.add(kid)
         if r.new_points:
@@ -338,20 +158,31 @@ class Agent:
                           zip(pts, refs, strict=True)]).reshape(-1, 3),
                 np.array([p.desc for p in pts], np.uint8).reshape(-1, 32),
             ))  # fmt: skip
-        # Local BA moved the window: send its keyframes' new relative poses and the
-        # older keyframes that gained observations of the new points.
+        # Associations (8 bytes a keypoint) only where triangulation added some: the
+        # older keyframes that see the new points.
         gained = {k for i in r.new_points if i in vo.mps for k in vo.mps[i].obs}
-        for kid in ids[-self.vo.p.window :]:
-            if kid in new:
-                continue
-            k = vo.kfs[kid]
-            pred = max((i for i in ids if i < kid), default=-1)
-            par = self._parent(k)
-            # Associations (8 bytes a keypoint) only where triangulation added some.
-            mp = self._own_ids(k.mp) if kid in gained else None
-            self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
-                                                     self._rel(k, par), mp))  # fmt: skip
+        for kid in sorted(gained - set(new)):
+            self._update_kf(kid, with_mp=True)
         self._trim(kf.id)
+
+    def _update_kf(self, kid: int, with_mp: bool = False) -> None:
+        k = self.vo.kfs[kid]
+        pred = max((i for i in self.vo.kfs if i < kid), default=-1)
+        par = self._parent(k)
+        mp = self._own_ids(k.mp) if with_mp else None
+        self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
+                                                 self._rel(k, par), mp))  # fmt: skip
+
+    def _after_ba(self) -> None:
+        """Local BA moved the window: send its keyframes' new relative poses."""
+        for moved_kfs, _ in self.vo.ba_applied:
+            if not moved_kfs:
+                continue
+            ids = sorted(self.vo.kfs)
+            for kid in ids[-self.vo.p.window :]:
+                if kid in self._sent_kfs:
+                    self._update_kf(kid)
+        self.vo.ba_applied.clear()
 
     def _trim(self, kf_ref: int) -> None:
         unacked = self.comm.unacked_kf_ids
@@ -381,6 +212,32 @@ class Agent:
             T = se3_inv(self.vo.kfs[k].T_w_c)
             self.comm.mps[i] = (k, T[:3, :3] @ mp.pos + T[:3, 3], desc)
 
+
+class Agent(AgentLoop):
+    """The real agent: the agent loop with the VO producer. ``realtime`` flies as a
+    live camera delivers: frames at their timestamps, dropped when the agent is behind."""
+
+    def __init__(self, settings: Settings, agent_id: str, source: ImageSource,
+                 use_server: bool = True, realtime: bool = False, n_local: int = 50,
+                 n_buffer: int = 50, vo_params: VOParams | None = None) -> None:  # fmt: skip
+        self.source = source
+        self.realtime = realtime
+        # Live: local BA in its own process, so tracking keeps up with the camera.
+        # Offline the inline BA keeps runs repeatable (the same poses every time).
+        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params or settings.vo,
+                              background_ba=realtime)  # fmt: skip
+        super().__init__(settings, agent_id, producer, use_server=use_server,
+                         speed=1.0 if realtime else 0.0, drop_when_behind=realtime,
+                         progress=True, total_frames=_len(source))  # fmt: skip
+
+    @property
+    def vo(self) -> VisualOdometry:
+        return self.producer.vo
+
+    @property
+    def kf_poses(self) -> list[tuple[int, np.ndarray]]:
+        return self.producer.kf_poses
+
     def write_outputs(self, out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
         for name, poses in (("online", self.poses), ("vo", self.vo_poses)):
@@ -391,22 +248,20 @@ class Agent:
         gt = self.source.ground_truth
         if gt is not None:
             (out / f"{self.agent}_gt.tum").write_text(format_tum(gt.stamps_ns, gt.poses))
-        import json
-
         if self.kf_poses:
             st = np.array([s for s, _ in self.kf_poses], np.int64)
             T = np.stack([T for _, T in self.kf_poses])
             (out / f"{self.agent}_keyframes.tum").write_text(format_tum(st, T))
-        lat = np.array(self.comm.stats.ack_latencies) if self.comm.stats.ack_latencies else None
-        comm = {
-            "bytes": self.comm.stats.bytes, "messages": self.comm.stats.messages,
-            "kf_resent": self.comm.stats.kf_resent,
-            "ack_latency_median_ms": None if lat is None else float(np.median(lat) * 1e3),
-            "ack_latency_p95_ms": None if lat is None else float(np.percentile(lat, 95) * 1e3),
-        }  # fmt: skip
         vo = {"relocalized": self.vo.relocalized, "rejected_jumps": self.vo.rejected_jumps}
-        doc = {**self.stats.summary(), "comm": comm, "vo": vo}
+        doc = {**self.stats.to_dict(), "vo": vo}
         (out / f"{self.agent}_stats.json").write_text(json.dumps(doc, indent=2))
+
+
+def _len(source: ImageSource) -> int | None:
+    try:
+        return len(source)
+    except (TypeError, NotImplementedError):
+        return None  # a live camera
 
 
 def online_trajectory(agent: Agent) -> Trajectory:

@@ -19,9 +19,10 @@ from shared.camera import PinholeRadTan
 from shared.geometry import exp_so3, log_so3, se3_inv
 from shared.orb import Extractor, Features, hamming
 
+from .ba_worker import BAWorker
 from .features import match_by_projection, match_descriptors
 from .geometry import solve_pnp, triangulate, two_view_init
-from .local_ba import local_ba
+from .local_ba import BAResult, local_ba
 
 FOREIGN_ID0 = 1 << 50  # first local id of a point the server sent
 
@@ -111,6 +112,11 @@ class VisualOdometry:
         self.lost_frames = 0
         self.foreign: OrderedDict[int, tuple[str, int]] = OrderedDict()  # local id -> key
         self.foreign_by_key: dict[tuple[str, int], int] = {}
+        # Local BA off the tracking path (see _local_ba); None: inline, deterministic.
+        self.ba_worker: BAWorker | None = None
+        self._ba_wanted = False
+        # (keyframes, map points) each applied local BA moved, for the agent to send.
+        self.ba_applied: list[tuple[list[int], list[int]]] = []
 
     # --- public -----------------------------------------------------------------------------
     def track(self, img: np.ndarray, stamp_ns: int) -> FrameResult:
@@ -158,7 +164,7 @@ class VisualOdometry:
             new.append(mp.id)
         t = time.perf_counter()
         if self.p.ba:
-            self._local_ba(kf1)
+            self._local_ba(kf1, inline=True)
         self.state = "ok"
         self.T_last = kf1.T_w_c
         self.velocity = se3_inv(kf0.T_w_c) @ kf1.T_w_c
@@ -483,7 +489,37 @@ class VisualOdometry:
             if kf is not None and kf.mp[j] == i:
                 kf.mp[j] = -1
 
-    def _local_ba(self, kf: KeyFrame) -> None:
+    def _local_ba(self, kf: KeyFrame, inline: bool = False) -> None:
+        """Local BA of the newest window, in this thread or, with a ``ba_worker``, in
+        its process (the tracking path goes on meanwhile; :meth:`poll_mapping` applies
+        the result). A keyframe that comes while a BA runs asks for one more run."""
+        if self.ba_worker is None or inline:
+            job = self._ba_job()
+            if job is not None:
+                self._apply_ba(local_ba(**job))
+            return
+        if self.ba_worker.busy:
+            self._ba_wanted = True
+            return
+        job = self._ba_job()
+        if job is not None:
+            self.ba_worker.submit(job)
+
+    def poll_mapping(self, wait: bool = False) -> bool:
+        """Apply a local BA the worker finished (waiting for it with ``wait``); start
+        the one a keyframe asked for meanwhile. True if a result was applied."""
+        if self.ba_worker is None:
+            return False
+        r = self.ba_worker.result(wait)
+        if r is None:
+            return False
+        self._apply_ba(r)
+        if self._ba_wanted and self.kfs:
+            self._ba_wanted = False
+            self._local_ba(self.last_kf)
+        return True
+
+    def _ba_job(self) -> dict | None:
         win = sorted(self.kfs)[-self.p.window :]
         pts = set()
         for k in win:
@@ -502,20 +538,30 @@ class VisualOdometry:
                         kf_ids.add(k)
                         fixed.add(k)
         if len(pts) < 20:
-            return
-        poses = {k: self.kfs[k].T_w_c for k in kf_ids}
-        r = local_ba(poses, fixed, {i: self.mps[i].pos for i in pts}, obs, self.cam.fx,
-                     max_iters=5)  # fmt: skip
-        for k, T in r.poses.items():
-            self.kfs[k].T_w_c = T
-        for i, p in r.points.items():
-            self.mps[i].pos = p
+            return None
+        return {
+            "poses": {k: self.kfs[k].T_w_c.copy() for k in kf_ids}, "fixed": fixed,
+            "points": {i: self.mps[i].pos.copy() for i in pts}, "obs": obs,
+            "focal": self.cam.fx, "max_iters": 5,
+        }  # fmt: skip
+
+    def _apply_ba(self, r: BAResult) -> None:
+        """A BA run in the background may come back after trimming or culling removed
+        some of its keyframes and points: those are skipped."""
+        moved_kfs = [k for k in r.poses if k in self.kfs]
+        for k in moved_kfs:
+            self.kfs[k].T_w_c = r.poses[k]
+        moved_mps = [i for i in r.points if i in self.mps]
+        for i in moved_mps:
+            self.mps[i].pos = r.points[i]
         for k, i in r.outliers:
             mp = self.mps.get(i)
             if mp is not None and k in mp.obs:
                 j = mp.obs.pop(k)
-                if self.kfs[k].mp[j] == i:
-                    self.kfs[k].mp[j] = -1
+                kf = self.kfs.get(k)
+                if kf is not None and kf.mp[j] == i:
+                    kf.mp[j] = -1
+        self.ba_applied.append((moved_kfs, moved_mps))
 
 
 def _damp(T: np.ndarray, a: float) -> np.ndarray:
