@@ -224,7 +224,7 @@ class Agent(AgentLoop):
         self.realtime = realtime
         # Live: local BA in its own process, so tracking keeps up with the camera.
         # Offline the inline BA keeps runs repeatable (the same poses every time).
-        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params or settings.vo,
+        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params,
                               background_ba=realtime)  # fmt: skip
         super().__init__(settings, agent_id, producer, use_server=use_server,
                          speed=1.0 if realtime else 0.0, drop_when_behind=realtime,
