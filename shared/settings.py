@@ -72,6 +72,9 @@ class CommSettings(BaseModel):
     window_max: int = Field(64, ge=1)
     ack_target_s: float = Field(1.0, gt=0)
     pose_rate_hz: float = Field(10.0, gt=0)
+    # A map point moved by local BA is sent again when it moved by more than this share
+    # of its distance from its reference keyframe.
+    mp_update_rel: float = Field(0.01, ge=0)
 
 
 class MapperSettings(BaseModel):

@@ -230,3 +230,52 @@ def test_realtime_drops_frames_when_the_tracker_is_slow():
     # dropping would end 120 periods late.
     assert max(stats.latency_s) < 5 * period, max(stats.latency_s)
     assert stats.to_dict()["dropped_frames"] == stats.dropped_frames
+
+
+def test_map_point_updates_reach_the_server_and_move_its_points(redis_url):
+    """After a local BA the agent sends the points it moved (CCM-SLAM §4.5 updates,
+    relative to each point's reference keyframe); the mapper moves its copies. With
+    registration by relative poses alone the server's point must sit where the last
+    update puts it on the server's keyframe, not where the point was first sent."""
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    s = Settings(redis_url=redis_url, zenoh=ZenohSettings(mode="client", connect=[ep]))
+    s = s.model_copy(update={"mapper": s.mapper.model_copy(update={
+        "redundancy": False, "refine_poses": False, "scale_correction": False,
+        "fuse": False})})  # fmt: skip
+    router = zenoh.open(zenoh_config(ZenohSettings(mode="router", connect=[], listen=[ep])))
+    mapper = MapperService(s)
+    mapper.start()
+    agent = Agent(s, "upd", open_source("synthetic:MH01?frames=1200:1400"))
+    first: dict[int, tuple[int, np.ndarray]] = {}
+    add = agent.comm.add_map_points
+
+    def spy(mps):
+        for i, r, p in zip(mps.ids.tolist(), mps.ref_kf.tolist(), mps.p_ref, strict=True):
+            first.setdefault(i, (r, p.copy()))
+        add(mps)
+
+    agent.comm.add_map_points = spy
+    try:
+        stats = agent.run()
+    finally:
+        agent.close()
+        mapper.stop()
+        router.close()
+    assert stats.all_acked and stats.mp_updates > 20, stats.mp_updates
+    store = Store(connect(redis_url))
+    ids, _, T_m = store.trajectory("upd")
+    T_of = dict(zip(ids.tolist(), T_m, strict=True))
+    pos = {p.id: p.pos for p in store.map_points("upd")}
+    last = agent.producer._mp_sent
+    moved = [i for i in last if i in first and i in pos and last[i][0] in T_of
+             and not np.allclose(last[i][1], first[i][1])]  # fmt: skip
+    assert len(moved) > 20, len(moved)
+    closer = 0
+    for i in moved:
+        T = T_of[last[i][0]]
+        to_last = np.linalg.norm(pos[i] - (T[:3, :3] @ last[i][1] + T[:3, 3]))
+        T0 = T_of[first[i][0]]
+        to_first = np.linalg.norm(pos[i] - (T0[:3, :3] @ first[i][1] + T0[:3, 3]))
+        closer += to_last < to_first
+    assert closer >= 0.95 * len(moved), (closer, len(moved))

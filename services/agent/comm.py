@@ -115,6 +115,7 @@ class CommModule:
         self.first_sent_at: dict[int, float] = {}
         self.kf_updates: dict[int, KeyframeUpdate] = {}
         self.mp_updates: dict[int, tuple[int, np.ndarray]] = {}
+        self._after_ack: dict[int, tuple[int, np.ndarray]] = {}  # updates of points in flight
         self.acked_kfs: set[int] = set()
         self.forgotten: set[int] = set()  # dropped unacknowledged (may still arrive)
         self._last_seq_by_kf: dict[int, int] = {}
@@ -189,9 +190,15 @@ class CommModule:
         self.kf_updates[upd.id] = upd
 
     def update_map_point(self, mp_id: int, ref_kf: int, p_ref: np.ndarray) -> None:
-        if mp_id in self.mps and mp_id not in self.sent_mps:
+        if mp_id in self.mps:
+            # Unacknowledged: a resend of the full point carries the new position. If
+            # it is on its way, the update follows its ack: the server may still hold
+            # the point back (its keyframe not registered yet) and would drop an
+            # update for a point it does not have.
             _, _, desc = self.mps[mp_id]
             self.mps[mp_id] = (ref_kf, np.asarray(p_ref, float), desc)
+            if mp_id in self.sent_mps:
+                self._after_ack[mp_id] = (ref_kf, np.asarray(p_ref, float))
             return
         self.mp_updates[mp_id] = (ref_kf, np.asarray(p_ref, float))
 
@@ -213,12 +220,19 @@ class CommModule:
     def forget_map_point(self, mp_id: int) -> None:
         self._mp_attempts.pop(mp_id, None)
         self.mps.pop(mp_id, None)
+        self._after_ack.pop(mp_id, None)
         self.queued_mps.discard(mp_id)
         self.sent_mps.pop(mp_id, None)
 
     @property
     def unacked_kf_ids(self) -> set[int]:
         return set(self.kfs)
+
+    @property
+    def has_updates(self) -> bool:
+        """Updates wait to go out (they are never acknowledged: CCM-SLAM sends them
+        optimistically, and a newer one supersedes a lost one)."""
+        return bool(self.kf_updates or self.mp_updates)
 
     @property
     def pending(self) -> bool:
@@ -252,6 +266,9 @@ class CommModule:
             self.acked_kfs.add(i)
         for i in ack.mp_ids.tolist():
             self.mps.pop(i, None)
+            upd = self._after_ack.pop(i, None)
+            if upd is not None:
+                self.mp_updates[i] = upd
             self.sent_mps.pop(i, None)
             self.queued_mps.discard(i)
             self._mp_attempts.pop(i, None)

@@ -63,7 +63,6 @@ class Step:
     T_l_ref: np.ndarray | None = None
     T_pred: np.ndarray | None = None  # the motion model's pose for this frame
     keyframe: bool = False
-    new_points: int = 0
     track_s: float = 0.0
     map_s: float = 0.0  # mapping time run inline on this frame (0 when off the path)
 
@@ -103,6 +102,7 @@ class AgentStats:
     dropped_frames: int = 0  # frames a live camera delivered while the agent was busy
     keyframes: int = 0
     map_points: int = 0  # new map points handed to the communication module
+    mp_updates: int = 0  # map point positions sent again after a local BA moved them
     lost_frames: int = 0
     longest_lost_s: float = 0.0
     track_s: list[float] = field(default_factory=list)
@@ -287,7 +287,6 @@ class AgentLoop:
                 lost_since = None
             if s.keyframe:
                 st.keyframes += 1
-                st.map_points += s.new_points
                 if s.map_s > 0:
                     st.map_s.append(s.map_s)
             if s.kf_ref >= 0:
@@ -305,7 +304,8 @@ class AgentLoop:
 
     def _flushing(self) -> bool:
         """After the last frame: keep going while a server may still take our data."""
-        return self.use_server and (self.bus is None or self.comm.pending)
+        c = self.comm
+        return self.use_server and (self.bus is None or c.pending or c.has_updates)
 
     def _publish_pose(self, s: Step) -> None:
         now = time.monotonic()

@@ -36,6 +36,9 @@ from .sources import ImageSource
 from .vo.ba_worker import BAWorker
 from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
 
+# The VO triangulates a new keyframe against the two before it (VisualOdometry._triangulate).
+SETTLE_KFS = 2
+
 
 class VOProducer:
     """The monocular VO on an image source, as a producer of the agent loop."""
@@ -44,7 +47,7 @@ class VOProducer:
 
     def __init__(self, source: ImageSource, agent_id: str, n_local: int = 50,
                  n_buffer: int = 50, vo_params: VOParams | None = None,
-                 background_ba: bool = False) -> None:  # fmt: skip
+                 background_ba: bool = False, mp_update_rel: float = 0.01) -> None:  # fmt: skip
         self.source = source
         self.camera = source.camera
         self.agent = agent_id
@@ -54,6 +57,9 @@ class VOProducer:
             self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self._sent_kfs: set[int] = set()
+        self._kp_sel: dict[int, np.ndarray] = {}  # keyframe -> the keypoints sent
+        self._mp_sent: dict[int, tuple[int, np.ndarray]] = {}  # point -> ref kf, p_ref sent
+        self.mp_update_rel = mp_update_rel
 
     def bind(self, comm: CommModule, stats: AgentStats) -> None:
         self.comm, self.stats = comm, stats
@@ -68,7 +74,7 @@ class VOProducer:
                  map_s=r.map_s)  # fmt: skip
         if r.keyframe is not None:
             self.kf_poses.append((r.keyframe.stamp_ns, r.keyframe.T_w_c.copy()))
-            s.keyframe, s.new_points = True, len(r.new_points)
+            s.keyframe = True
             self._on_keyframe(r)
         self._after_ba()
         if self.vo.kfs:
@@ -83,6 +89,8 @@ class VOProducer:
     def finish(self) -> None:
         while self.vo.poll_mapping(wait=True):
             self._after_ba()
+        # The last keyframes will not settle any more.
+        self._send_keyframes([k for k in sorted(self.vo.kfs) if k not in self._sent_kfs])
 
     def close(self) -> None:
         if self.vo.ba_worker is not None:
@@ -134,55 +142,87 @@ class VOProducer:
     def _on_keyframe(self, r: FrameResult) -> None:
         vo = self.vo
         kf = r.keyframe
+        # A keyframe goes out once it is settled: the VO triangulates each new keyframe
+        # against the SETTLE_KFS before it, so until that many came after it its free
+        # keypoints may still gain map points. Then only the keypoints with a map
+        # point are sent (the others will never have one on board), and no association
+        # update follows (8 bytes a keypoint each time).
         ids = sorted(vo.kfs)
-        # The first two keyframes come from initialization together.
-        new = [k for k in ids if k not in self._sent_kfs]
+        settled = ids[: max(0, len(ids) - SETTLE_KFS)]
+        self._send_keyframes([k for k in settled if k not in self._sent_kfs])
+        self._trim(kf.id)
+
+    def _send_keyframes(self, new: list[int]) -> None:
+        vo = self.vo
         for kid in new:
             k = vo.kfs[kid]
-            pred = max((i for i in ids if i < kid), default=-1)
+            pred = max((i for i in vo.kfs if i < kid), default=-1)
             par = self._parent(k)
+            sel = np.nonzero(k.mp >= 0)[0]
+            self._kp_sel[kid] = sel
             self.comm.add_keyframe(NewKeyframe(
                 id=kid, stamp_ns=k.stamp_ns, T_l_kf=k.T_w_c.copy(), pred_id=pred,
                 T_pred_kf=self._rel(k, pred), parent_id=par, T_par_kf=self._rel(k, par),
-                keypoints=k.f.kp, octaves=k.f.octave, descriptors=k.f.desc,
-                mp_ids=self._own_ids(k.mp), calib=self.camera.to_array(),
+                keypoints=k.f.kp[sel], octaves=k.f.octave[sel], descriptors=k.f.desc[sel],
+                mp_ids=self._own_ids(k.mp[sel]), calib=self.camera.to_array(),
             ))  # fmt: skip
             self._sent_kfs.add(kid)
-        if r.new_points:
-            pts = [vo.mps[i] for i in r.new_points if i in vo.mps]
-            refs = [min(p.obs) for p in pts]
-            T_inv = {k: se3_inv(vo.kfs[k].T_w_c) for k in set(refs)}
-            self.comm.add_map_points(MapPoints(
-                np.array([p.id for p in pts], np.int64), np.array(refs, np.int64),
-                np.array([T_inv[k][:3, :3] @ p.pos + T_inv[k][:3, 3] for p, k in
-                          zip(pts, refs, strict=True)]).reshape(-1, 3),
-                np.array([p.desc for p in pts], np.uint8).reshape(-1, 32),
-            ))  # fmt: skip
-        # Associations (8 bytes a keypoint) only where triangulation added some: the
-        # older keyframes that see the new points.
-        gained = {k for i in r.new_points if i in vo.mps for k in vo.mps[i].obs}
-        for kid in sorted(gained - set(new)):
-            self._update_kf(kid, with_mp=True)
-        self._trim(kf.id)
+        if not new:
+            return
+        # The new points whose reference keyframe (the oldest that sees them) the server
+        # now has or is getting; positions as the last local BA left them.
+        sent = self._sent_kfs
+        pts = [p for i, p in vo.mps.items()
+               if i not in vo.foreign and i not in self._mp_sent and p.obs
+               and min(p.obs) in sent]  # fmt: skip
+        if not pts:
+            return
+        refs = [min(p.obs) for p in pts]
+        T_inv = {k: se3_inv(vo.kfs[k].T_w_c) for k in set(refs)}
+        p_ref = np.array([T_inv[k][:3, :3] @ p.pos + T_inv[k][:3, 3]
+                          for p, k in zip(pts, refs, strict=True)]).reshape(-1, 3)  # fmt: skip
+        for p, k, x in zip(pts, refs, p_ref, strict=True):
+            self._mp_sent[p.id] = (k, x)
+        self.stats.map_points += len(pts)
+        self.comm.add_map_points(MapPoints(
+            np.array([p.id for p in pts], np.int64), np.array(refs, np.int64), p_ref,
+            np.array([p.desc for p in pts], np.uint8).reshape(-1, 32),
+        ))  # fmt: skip
 
-    def _update_kf(self, kid: int, with_mp: bool = False) -> None:
+    def _update_kf(self, kid: int) -> None:
         k = self.vo.kfs[kid]
         pred = max((i for i in self.vo.kfs if i < kid), default=-1)
         par = self._parent(k)
-        mp = self._own_ids(k.mp) if with_mp else None
         self.comm.update_keyframe(KeyframeUpdate(kid, pred, self._rel(k, pred), par,
-                                                 self._rel(k, par), mp))  # fmt: skip
+                                                 self._rel(k, par), None))  # fmt: skip
 
     def _after_ba(self) -> None:
-        """Local BA moved the window: send its keyframes' new relative poses."""
-        for moved_kfs, _ in self.vo.ba_applied:
-            if not moved_kfs:
-                continue
-            ids = sorted(self.vo.kfs)
-            for kid in ids[-self.vo.p.window :]:
-                if kid in self._sent_kfs:
-                    self._update_kf(kid)
-        self.vo.ba_applied.clear()
+        """Local BA moved the window: send its keyframes' new relative poses and the
+        new positions of its points (CCM-SLAM §4.5 "updates"), each relative to the
+        point's reference keyframe, for the points that moved by more than
+        ``mp_update_rel`` of their distance from it."""
+        vo = self.vo
+        for moved_kfs, moved_mps in vo.ba_applied:
+            if moved_kfs:
+                for kid in sorted(vo.kfs)[-vo.p.window :]:
+                    if kid in self._sent_kfs:
+                        self._update_kf(kid)
+            T_inv: dict[int, np.ndarray] = {}
+            for i in moved_mps:
+                sent = self._mp_sent.get(i)
+                mp = vo.mps.get(i)
+                if sent is None or mp is None or sent[0] not in vo.kfs:
+                    continue
+                ref, x0 = sent
+                T = T_inv.get(ref)
+                if T is None:
+                    T = T_inv[ref] = se3_inv(vo.kfs[ref].T_w_c)
+                x = T[:3, :3] @ mp.pos + T[:3, 3]
+                if np.linalg.norm(x - x0) > self.mp_update_rel * np.linalg.norm(x0):
+                    self._mp_sent[i] = (ref, x)
+                    self.comm.update_map_point(i, ref, x)
+                    self.stats.mp_updates += 1
+        vo.ba_applied.clear()
 
     def _trim(self, kf_ref: int) -> None:
         unacked = self.comm.unacked_kf_ids
@@ -225,7 +265,8 @@ class Agent(AgentLoop):
         # Live: local BA in its own process, so tracking keeps up with the camera.
         # Offline the inline BA keeps runs repeatable (the same poses every time).
         producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params,
-                              background_ba=realtime)  # fmt: skip
+                              background_ba=realtime,
+                              mp_update_rel=settings.comm.mp_update_rel)  # fmt: skip
         super().__init__(settings, agent_id, producer, use_server=use_server,
                          speed=1.0 if realtime else 0.0, drop_when_behind=realtime,
                          progress=True, total_frames=_len(source))  # fmt: skip

@@ -42,7 +42,8 @@ class SimProducer:
         if kf is not None:
             self.comm.add_keyframe(kf.kf)
             self.comm.add_map_points(kf.new_mps)
-            s.keyframe, s.new_points = True, len(kf.new_mps)
+            s.keyframe = True
+            self.stats.map_points += len(kf.new_mps)
             self._trim()
         if self.sim.last_kf is not None:
             s.kf_ref, s.T_l_ref = self.sim.last_kf[0], self.sim.last_kf[1]
