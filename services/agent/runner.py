@@ -19,6 +19,8 @@ file.
 from __future__ import annotations
 
 import json
+import queue
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -47,13 +49,16 @@ class VOProducer:
 
     def __init__(self, source: ImageSource, agent_id: str, n_local: int = 50,
                  n_buffer: int = 50, vo_params: VOParams | None = None,
-                 background_ba: bool = False, mp_update_rel: float = 0.01) -> None:  # fmt: skip
+                 live: bool = False, mp_update_rel: float = 0.01) -> None:  # fmt: skip
         self.source = source
         self.camera = source.camera
         self.agent = agent_id
         self.n_local, self.n_buffer = n_local, n_buffer
         self.vo = VisualOdometry(source.camera, vo_params)
-        if background_ba:
+        # Live: local BA in its own process, so tracking keeps up with the camera.
+        # Offline the inline BA keeps runs repeatable (the same poses every time).
+        self.live = live
+        if live:
             self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self._sent_kfs: set[int] = set()
@@ -65,8 +70,40 @@ class VOProducer:
         self.comm, self.stats = comm, stats
 
     def frames(self) -> Iterator[Frame]:
-        for f in self.source:
-            yield Frame(f.stamp_ns, f.image)
+        if not self.live:
+            for f in self.source:
+                yield Frame(f.stamp_ns, f.image)
+            return
+        # A live camera delivers decoded images: reading and decoding them (a few ms a
+        # frame, more when the synthetic world renders one) is the camera's work, done
+        # on a thread of its own (OpenCV releases the GIL) a few frames ahead.
+        q: queue.Queue = queue.Queue(maxsize=4)
+        done = object()
+        stop = threading.Event()
+
+        def read() -> None:
+            try:
+                for f in self.source:
+                    while not stop.is_set():
+                        try:
+                            q.put((f.stamp_ns, f.image), timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                    if stop.is_set():
+                        return
+                q.put(done)
+            except BaseException as e:  # the source's error reaches the agent's thread
+                q.put(e)
+
+        threading.Thread(target=read, name="camera", daemon=True).start()
+        try:
+            while (item := q.get()) is not done:
+                if isinstance(item, BaseException):
+                    raise item
+                yield Frame(*item)
+        finally:
+            stop.set()
 
     def step(self, frame: Frame) -> Step:
         r = self.vo.track(frame.data, frame.stamp_ns)
@@ -262,10 +299,7 @@ class Agent(AgentLoop):
                  n_buffer: int = 50, vo_params: VOParams | None = None) -> None:  # fmt: skip
         self.source = source
         self.realtime = realtime
-        # Live: local BA in its own process, so tracking keeps up with the camera.
-        # Offline the inline BA keeps runs repeatable (the same poses every time).
-        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params,
-                              background_ba=realtime,
+        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params, live=realtime,
                               mp_update_rel=settings.comm.mp_update_rel)  # fmt: skip
         super().__init__(settings, agent_id, producer, use_server=use_server,
                          speed=1.0 if realtime else 0.0, drop_when_behind=realtime,

@@ -1,0 +1,82 @@
+"""Live-camera timing (agent issue 17, item 3): the agent as a camera drives it.
+
+For each sequence, ``hivemap agent --no-server --realtime`` limited to two cores
+(``taskset -c CPUS``): frames arrive at their timestamps and the agent drops the ones
+that came while it was busy. Reported: share of frames dropped, latency from a frame's
+time to its reported pose (median, p95), reported-pose ATE, and the same sequence
+unpaced (every frame tracked, no clock) for the ATE it should stay within 20 % of. The
+machine is shared: the 1-minute load before and after each run is recorded.
+
+    .venv/bin/python bench/bench_realtime.py [--seqs MH01,MH02,MH03] [--cpus 0,1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import table, write_report  # noqa: E402
+
+from services.launcher import _hivemap_exe  # noqa: E402
+from shared.trajectory import ate, read_tum  # noqa: E402
+
+
+def fly(seq: str, frames: str, realtime: bool, cpus: str) -> dict:
+    out = Path(tempfile.mkdtemp(prefix=f"hivemap-rt-{seq}-"))
+    agent = f"rt-{seq}"
+    src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+    argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--no-server",
+                             "--out", str(out)] + (["--realtime"] if realtime else [])  # fmt: skip
+    if cpus:
+        argv = ["taskset", "-c", cpus] + argv
+    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
+    load0 = os.getloadavg()[0]
+    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
+    st = json.loads((out / f"{agent}_stats.json").read_text())
+    gt = read_tum(out / f"{agent}_gt.tum")
+    a = ate(read_tum(out / f"{agent}_online.tum"), gt)
+    n = st["frames"] + st["dropped_frames"]
+    return {
+        "seq": seq, "realtime": realtime, "frames": st["frames"],
+        "dropped": st["dropped_frames"], "dropped_pct": 100.0 * st["dropped_frames"] / n,
+        "latency_ms_median": 1e3 * st["latency_s_median"],
+        "latency_ms_p95": 1e3 * st["latency_s_p95"],
+        "track_ms_median": 1e3 * st["track_s_median"], "keyframes": st["keyframes"],
+        "longest_lost_s": st["longest_lost_s"], "ate_m": a.rmse, "ate_pct": a.percent_of_path,
+        "load_before": load0, "load_after": os.getloadavg()[0],
+    }  # fmt: skip
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seqs", default="MH01,MH02,MH03")
+    ap.add_argument("--frames", default="")
+    ap.add_argument("--cpus", default="0,1", help="taskset CPU list ('' = no limit)")
+    ap.add_argument("--name", default="realtime")
+    args = ap.parse_args()
+    rows = []
+    for seq in args.seqs.split(","):
+        paced = fly(seq, args.frames, True, args.cpus)
+        unpaced = fly(seq, args.frames, False, args.cpus)
+        paced["ate_unpaced_m"] = unpaced["ate_m"]
+        paced["ate_vs_unpaced"] = paced["ate_m"] / unpaced["ate_m"]
+        rows += [paced, unpaced]
+        print(json.dumps(paced), file=sys.stderr, flush=True)
+    path = write_report(args.name, {"cpus": args.cpus, "rows": rows})
+    print(table([r for r in rows if r["realtime"]],
+                ["seq", "frames", "dropped", "dropped_pct", "latency_ms_median",
+                 "latency_ms_p95", "ate_m", "ate_unpaced_m", "ate_vs_unpaced", "load_before",
+                 "load_after"]))  # fmt: skip
+    print(f"written {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
