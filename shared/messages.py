@@ -126,6 +126,33 @@ def _get(d: dict, key: str) -> Any:
         raise DecodeError(f"missing field {key!r}") from None
 
 
+# --- compact form ---------------------------------------------------------------
+# Added within v1, what agents send (``KeyframeBatch.encode(compact=True)``): keypoints
+# as uint16 in 1/KP_QUANT px (half the bytes, at most 1/16 px off, far below the
+# keypoints' own noise), ids as int32 where they fit, point positions as float32 (7
+# significant digits). Decoding widens either form to the same arrays.
+KP_QUANT = 8
+
+
+def _narrow_ids(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a)
+    if len(a) and (a.min() < -(1 << 31) or a.max() >= 1 << 31):
+        return a
+    return a.astype(np.int32)
+
+
+def _ids(v: Any, name: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    if isinstance(v, np.ndarray) and v.dtype == np.dtype("<i4"):
+        return _arr(v, name, "<i4", shape).astype(np.int64)
+    return _arr(v, name, "<i8", shape)
+
+
+def _keypoints(v: Any) -> np.ndarray:
+    if isinstance(v, np.ndarray) and v.dtype == np.dtype("<u2"):
+        return _arr(v, "keypoints", "<u2", (None, 2)).astype(np.float32) / KP_QUANT
+    return _arr(v, "keypoints", "<f4", (None, 2))
+
+
 # --- messages -------------------------------------------------------------------
 
 
@@ -147,17 +174,21 @@ class NewKeyframe:
     # Optional (added within v1): w, h, fx, fy, cx, cy, k1, k2, p1, p2 of the camera.
     calib: np.ndarray | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self, compact: bool = False) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         if d["calib"] is None:
             del d["calib"]
+        if compact:
+            q = np.rint(np.asarray(self.keypoints, np.float64) * KP_QUANT)
+            d["keypoints"] = np.clip(q, 0, 65535).astype(np.uint16)
+            d["mp_ids"] = _narrow_ids(self.mp_ids)
         return d
 
     @staticmethod
     def from_dict(d: dict) -> NewKeyframe:
         if not isinstance(d, dict):
             raise DecodeError("keyframe: expected a map")
-        kp = _arr(_get(d, "keypoints"), "keypoints", "<f4", (None, 2))
+        kp = _keypoints(_get(d, "keypoints"))
         n = len(kp)
         return NewKeyframe(
             id=_int(_get(d, "id"), "id"),
@@ -170,7 +201,7 @@ class NewKeyframe:
             keypoints=kp,
             octaves=_arr(_get(d, "octaves"), "octaves", "|u1", (n,)),
             descriptors=_arr(_get(d, "descriptors"), "descriptors", "|u1", (n, 32)),
-            mp_ids=_arr(_get(d, "mp_ids"), "mp_ids", "<i8", (n,)),
+            mp_ids=_ids(_get(d, "mp_ids"), "mp_ids", (n,)),
             calib=None if d.get("calib") is None else _calib(d["calib"]),
         )
 
@@ -186,8 +217,11 @@ class KeyframeUpdate:
     T_par_kf: np.ndarray
     mp_ids: np.ndarray | None = None
 
-    def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+    def to_dict(self, compact: bool = False) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        if compact and self.mp_ids is not None:
+            d["mp_ids"] = _narrow_ids(self.mp_ids)
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> KeyframeUpdate:
@@ -200,7 +234,7 @@ class KeyframeUpdate:
             T_pred_kf=_pose(_get(d, "T_pred_kf"), "T_pred_kf"),
             parent_id=_int(_get(d, "parent_id"), "parent_id"),
             T_par_kf=_pose(_get(d, "T_par_kf"), "T_par_kf"),
-            mp_ids=None if mp is None else _arr(mp, "mp_ids", "<i8", (None,)),
+            mp_ids=None if mp is None else _ids(mp, "mp_ids", (None,)),
         )
 
 
@@ -225,24 +259,31 @@ class MapPoints:
             np.zeros((0, 32), np.uint8) if with_descriptors else None,
         )  # fmt: skip
 
-    def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+    def to_dict(self, compact: bool = False) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        if compact:
+            d["ids"], d["ref_kf"] = _narrow_ids(self.ids), _narrow_ids(self.ref_kf)
+            d["p_ref"] = np.asarray(self.p_ref, np.float32)
+        return d
 
     @staticmethod
     def from_dict(d: dict, need_descriptors: bool) -> MapPoints:
         if not isinstance(d, dict):
             raise DecodeError("map points: expected a map")
-        ids = _arr(_get(d, "ids"), "mp ids", "<i8", (None,))
+        ids = _ids(_get(d, "ids"), "mp ids", (None,))
         m = len(ids)
         desc = d.get("descriptors")
         if need_descriptors and desc is None:
             raise DecodeError("new map points need descriptors")
-        p = _arr(_get(d, "p_ref"), "p_ref", "<f8", (m, 3))
+        p = _get(d, "p_ref")
+        if isinstance(p, np.ndarray) and p.dtype == np.dtype("<f4"):
+            p = _arr(p, "p_ref", "<f4", (m, 3)).astype(np.float64)
+        p = _arr(p, "p_ref", "<f8", (m, 3))
         if not np.all(np.isfinite(p)):
             raise DecodeError("p_ref: not finite")
         return MapPoints(
             ids=ids,
-            ref_kf=_arr(_get(d, "ref_kf"), "ref_kf", "<i8", (m,)),
+            ref_kf=_ids(_get(d, "ref_kf"), "ref_kf", (m,)),
             p_ref=p,
             descriptors=None if desc is None else _arr(desc, "mp descriptors", "|u1", (m, 32)),
         )
@@ -263,7 +304,9 @@ class KeyframeBatch:
     new_mps: MapPoints = field(default_factory=MapPoints.empty)
     mp_updates: MapPoints = field(default_factory=lambda: MapPoints.empty(False))
 
-    def encode(self) -> bytes:
+    def encode(self, compact: bool = False) -> bytes:
+        """``compact``: the smaller form agents send (see ``KP_QUANT``)."""
+        c = compact
         return packb(
             {
                 "schema": self.SCHEMA,
@@ -271,10 +314,10 @@ class KeyframeBatch:
                 "seq": self.seq,
                 "sent_ns": self.sent_ns,
                 "kf_ref": self.kf_ref,
-                "new_kfs": [k.to_dict() for k in self.new_kfs],
-                "kf_updates": [u.to_dict() for u in self.kf_updates],
-                "new_mps": self.new_mps.to_dict(),
-                "mp_updates": self.mp_updates.to_dict(),
+                "new_kfs": [k.to_dict(c) for k in self.new_kfs],
+                "kf_updates": [u.to_dict(c) for u in self.kf_updates],
+                "new_mps": self.new_mps.to_dict(c),
+                "mp_updates": self.mp_updates.to_dict(c),
             }
         )
 

@@ -131,3 +131,27 @@ def test_pose_health_fields_are_optional_both_ways():
                       ("ack_p50_s", "fast"), ("fps", float("nan"))):  # fmt: skip
         with pytest.raises(DecodeError, match=name):
             PoseUpdate.decode(packb({**msgpack.unpackb(data, raw=False), name: bad}))
+
+
+def test_compact_form_decodes_to_the_same_batch():
+    """What agents send: keypoints in 1/8 px, int32 ids, float32 positions; the mapper
+    decodes it to the arrays of the full form (keypoints within 1/16 px)."""
+    b = sample_batch()
+    rng = np.random.default_rng(3)
+    n = 500  # a keyframe's worth of keypoints, so the arrays dominate the bytes
+    kf = b.new_kfs[0]
+    kf.keypoints = rng.uniform(0, 751.9, (n, 2)).astype(np.float32)
+    kf.octaves = rng.integers(0, 8, n).astype(np.uint8)
+    kf.descriptors = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    kf.mp_ids = np.where(rng.random(n) < 0.5, rng.integers(0, 10**6, n), -1).astype(np.int64)
+    full, small = b.encode(), b.encode(compact=True)
+    assert len(small) < 0.85 * len(full)
+    d, c = KeyframeBatch.decode(full), KeyframeBatch.decode(small)
+    for kf_d, kf_c in zip(d.new_kfs, c.new_kfs, strict=True):
+        assert kf_c.keypoints.dtype == np.float32 and kf_c.mp_ids.dtype == np.int64
+        assert np.abs(kf_c.keypoints - kf_d.keypoints).max() <= 1 / 16 + 1e-6
+        np.testing.assert_array_equal(kf_c.mp_ids, kf_d.mp_ids)
+        np.testing.assert_array_equal(kf_c.descriptors, kf_d.descriptors)
+    np.testing.assert_array_equal(c.new_mps.ids, d.new_mps.ids)
+    np.testing.assert_allclose(c.new_mps.p_ref, d.new_mps.p_ref, rtol=1e-6)
+    assert c.new_mps.p_ref.dtype == np.float64

@@ -38,6 +38,8 @@ import numpy as np
 from shared.messages import Ack, KeyframeBatch, KeyframeUpdate, MapPoints, NewKeyframe
 
 _KF_OVERHEAD = 900  # msgpack keys, 3 poses and scalars of one keyframe
+# Sizes in the full wire form: the compact one agents send is smaller, so the cap
+# holds for either.
 _KP_BYTES = 8 + 1 + 32 + 8  # keypoint, octave, descriptor, map point id
 _MP_BYTES = 8 + 8 + 24 + 32
 _UPD_KF_BYTES = 500

@@ -333,7 +333,7 @@ class AgentLoop:
             self.comm.check_timeouts(now)
             msg = self.comm.next_message(now, time.time_ns(), self.kf_ref)
             if msg is not None:
-                data = msg.encode()
+                data = msg.encode(compact=True)
                 self.bus.put(keys.agent_kf(self.agent), data)
                 self.comm.record_sent(len(data))
         if wait > 0:
