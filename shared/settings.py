@@ -77,6 +77,70 @@ class CommSettings(BaseModel):
     mp_update_rel: float = Field(0.01, ge=0)
 
 
+class VOSettings(BaseModel):
+    """The agent's monocular VO (``services/agent/vo/odometry.py``, which takes this as
+    its ``VOParams``): every threshold it uses, by name."""
+
+    n_features: int = Field(1000, gt=0)
+    window: int = Field(7, ge=2)  # keyframes in local BA
+    local_kfs: int = Field(10, ge=1)  # keyframes whose points are searched while tracking
+    foreign_gate_px: float = Field(1.5, gt=0)  # server points must reproject this well
+    foreign_max_points: int = Field(1500, ge=0)  # server points kept, oldest forgotten
+    search_radius: float = Field(12.0, gt=0)  # px at the nominal frame interval
+    search_widen: float = Field(3.0, ge=1)  # the wide search: this times the first
+    refine_radius: float = Field(4.0, gt=0)  # px, second search around the refined pose
+    refine_keep_ratio: float = Field(0.8, gt=0)  # a re-solve must keep this share of inliers
+    min_depth: float = Field(0.05, gt=0)  # points nearer the camera are not searched
+    min_inliers: int = Field(40, ge=6)
+    # Fewer own inliers than this times min_inliers: the map is thin here, so the
+    # server's points join the search and the gate of foreign points stands aside.
+    strong_factor: float = Field(2.0, ge=1)
+    # Fewer tracked points than this times min_inliers: a keyframe now (leaving the map).
+    kf_thin_factor: float = Field(3.0, ge=1)
+    kf_min_frames: int = Field(4, ge=0)  # at the nominal frame interval (0.2 s at 20 Hz)
+    kf_max_frames: int = Field(12, ge=1)
+    kf_inlier_ratio: float = Field(0.7, gt=0, le=1)
+    ba: bool = True
+    ba_min_points: int = Field(20, ge=0)
+    ba_max_iters: int = Field(5, ge=1)
+    nominal_dt_s: float = Field(0.05, gt=0)  # the frame interval the frame counts are for
+    dt_ratio_min: float = Field(0.5, gt=0)  # frame interval / nominal, clipped to this range
+    dt_ratio_max: float = Field(6.0, gt=0)
+    # A pose the motion model cannot explain is not taken from a weakly supported PnP:
+    # how far from the prediction it may be (share of the scene depth, plus this many
+    # times the frame's own predicted motion), growing with every frame lost.
+    jump_depth_share: float = Field(0.15, gt=0)
+    jump_motion_factor: float = Field(1.5, ge=0)
+    jump_rot_deg: float = Field(12.0, gt=0)
+    strong_inliers: int = Field(150, ge=6)  # a PnP this well supported is taken anywhere
+    coast_s: float = Field(0.5, ge=0)  # lost: how long the motion model keeps the velocity
+    coast_damping: float = Field(0.7, ge=0, le=1)  # ... then it shrinks by this per frame
+    # Two-view initialization (ORB-SLAM): reference frame, matching, geometry.
+    init_min_features: int = Field(300, ge=8)
+    init_max_age_frames: int = Field(40, ge=1)  # then a new reference frame
+    init_match_ratio: float = Field(0.8, gt=0, le=1)
+    init_match_max_dist: int = Field(60, ge=0, le=256)
+    init_min_matches: int = Field(150, ge=8)
+    init_min_inliers: int = Field(120, ge=8)
+    init_min_parallax_deg: float = Field(1.5, gt=0)
+    # Relocalization against the local map's keyframes.
+    reloc_kfs: int = Field(6, ge=1)  # keyframes tried per lost frame, nearest first
+    reloc_min_matches: int = Field(30, ge=6)
+    reloc_match_ratio: float = Field(0.8, gt=0, le=1)
+    # Triangulation of a new keyframe against the ones before it.
+    tri_kfs: int = Field(2, ge=1)
+    tri_min_free: int = Field(10, ge=1)  # unmatched keypoints needed on both sides
+    tri_match_ratio: float = Field(0.75, gt=0, le=1)
+    tri_match_max_dist: int = Field(50, ge=0, le=256)
+    tri_min_matches: int = Field(5, ge=1)
+    tri_max_err_px: float = Field(2.0, gt=0)
+    tri_min_parallax_deg: float = Field(1.0, gt=0)
+    # Point culling (ORB-SLAM): this many keyframes after its creation a point must
+    # have been found in this share of the frames that should have seen it.
+    cull_min_age_kfs: int = Field(2, ge=0)
+    cull_min_found_ratio: float = Field(0.25, ge=0, le=1)
+
+
 class MapperSettings(BaseModel):
     feedback_rate_hz: float = Field(2.0, gt=0)
     feedback_k: int = Field(5, ge=0)
@@ -134,6 +198,7 @@ class Settings(BaseSettings):
     redis_url: str = "redis://127.0.0.1:6379/0"
     inject: InjectSettings = Field(default_factory=InjectSettings)
     comm: CommSettings = Field(default_factory=CommSettings)
+    vo: VOSettings = Field(default_factory=VOSettings)
     mapper: MapperSettings = Field(default_factory=MapperSettings)
     placerec: PlacerecSettings = Field(default_factory=PlacerecSettings)
     optimizer: OptimizerSettings = Field(default_factory=OptimizerSettings)

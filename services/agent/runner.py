@@ -38,9 +38,6 @@ from .sources import ImageSource
 from .vo.ba_worker import BAWorker
 from .vo.odometry import FrameResult, KeyFrame, VisualOdometry, VOParams, remove_keyframe
 
-# The VO triangulates a new keyframe against the two before it (VisualOdometry._triangulate).
-SETTLE_KFS = 2
-
 
 class VOProducer:
     """The monocular VO on an image source, as a producer of the agent loop."""
@@ -180,12 +177,12 @@ class VOProducer:
         vo = self.vo
         kf = r.keyframe
         # A keyframe goes out once it is settled: the VO triangulates each new keyframe
-        # against the SETTLE_KFS before it, so until that many came after it its free
+        # against the ``tri_kfs`` before it, so until that many came after it its free
         # keypoints may still gain map points. Then only the keypoints with a map
         # point are sent (the others will never have one on board), and no association
         # update follows (8 bytes a keypoint each time).
         ids = sorted(vo.kfs)
-        settled = ids[: max(0, len(ids) - SETTLE_KFS)]
+        settled = ids[: max(0, len(ids) - vo.p.tri_kfs)]
         self._send_keyframes([k for k in settled if k not in self._sent_kfs])
         self._trim(kf.id)
 
@@ -299,7 +296,8 @@ class Agent(AgentLoop):
                  n_buffer: int = 50, vo_params: VOParams | None = None) -> None:  # fmt: skip
         self.source = source
         self.realtime = realtime
-        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params, live=realtime,
+        producer = VOProducer(source, agent_id, n_local, n_buffer, vo_params or settings.vo,
+                              live=realtime,
                               mp_update_rel=settings.comm.mp_update_rel)  # fmt: skip
         super().__init__(settings, agent_id, producer, use_server=use_server,
                          speed=1.0 if realtime else 0.0, drop_when_behind=realtime,

@@ -18,6 +18,7 @@ import numpy as np
 from shared.camera import PinholeRadTan
 from shared.geometry import exp_so3, log_so3, se3_inv
 from shared.orb import Extractor, Features, hamming
+from shared.settings import VOSettings as VOParams
 
 from .ba_worker import BAWorker
 from .features import match_by_projection, match_descriptors
@@ -25,30 +26,6 @@ from .geometry import solve_pnp, triangulate, two_view_init
 from .local_ba import BAResult, local_ba
 
 FOREIGN_ID0 = 1 << 50  # first local id of a point the server sent
-
-
-@dataclass
-class VOParams:
-    n_features: int = 1000
-    window: int = 7  # keyframes in local BA
-    local_kfs: int = 10  # keyframes whose points are searched while tracking
-    foreign_gate_px: float = 1.5  # server points must reproject this well (see _gate_foreign)
-    search_radius: float = 12.0  # px at the nominal frame interval
-    min_inliers: int = 40
-    kf_min_frames: int = 4  # at the nominal frame interval (a time: 0.2 s at 20 Hz)
-    kf_max_frames: int = 12
-    kf_inlier_ratio: float = 0.7
-    ba: bool = True
-    nominal_dt_s: float = 0.05  # the frame interval the frame counts above are for
-    # A pose the motion model cannot explain is not taken from a weakly supported PnP:
-    # how far from the prediction it may be (share of the scene depth, plus this many
-    # times the frame's own predicted motion), growing with every frame lost.
-    jump_depth_share: float = 0.15
-    jump_motion_factor: float = 1.5
-    jump_rot_deg: float = 12.0
-    strong_inliers: int = 150  # a PnP this well supported is taken wherever it lands
-    coast_s: float = 0.5  # lost: how long the motion model keeps the last velocity
-    reloc_kfs: int = 6  # keyframes tried per lost frame, nearest the last pose first
 
 
 @dataclass
@@ -89,6 +66,7 @@ class VisualOdometry:
     def __init__(self, camera: PinholeRadTan, params: VOParams | None = None) -> None:
         self.cam = camera
         self.p = params or VOParams()
+        self._strong = self.p.strong_factor * self.p.min_inliers
         self.extract = Extractor(camera, self.p.n_features)
         self.kfs: dict[int, KeyFrame] = {}
         self.mps: dict[int, MapPoint] = {}
@@ -123,7 +101,8 @@ class VisualOdometry:
         t0 = time.perf_counter()
         if self.last_stamp is not None and stamp_ns > self.last_stamp:
             dt = (stamp_ns - self.last_stamp) * 1e-9
-            self.dt_ratio = float(np.clip(dt / self.p.nominal_dt_s, 0.5, 6.0))
+            self.dt_ratio = float(np.clip(dt / self.p.nominal_dt_s, self.p.dt_ratio_min,
+                                          self.p.dt_ratio_max))  # fmt: skip
         self.last_stamp = stamp_ns
         f = self.extract(img)
         step = self._initialize if self.state == "init" else self._track
@@ -137,16 +116,20 @@ class VisualOdometry:
 
     # --- initialization ---------------------------------------------------------------------
     def _initialize(self, f: Features, stamp: int) -> FrameResult:
-        if self.init_ref is None or self.init_age > 40 or len(self.init_ref[1]) < 300:
+        p = self.p
+        if (self.init_ref is None or self.init_age > p.init_max_age_frames
+                or len(self.init_ref[1]) < p.init_min_features):  # fmt: skip
             self.init_ref = (stamp, f)
             self.init_age = 0
             return FrameResult(stamp, None, "init")
         self.init_age += 1
         s0, f0 = self.init_ref
-        a, b = match_descriptors(f0.desc, f.desc, ratio=0.8, max_dist=60)
-        if len(a) < 150:
+        a, b = match_descriptors(f0.desc, f.desc, ratio=p.init_match_ratio,
+                                max_dist=p.init_match_max_dist)  # fmt: skip
+        if len(a) < p.init_min_matches:
             return FrameResult(stamp, None, "init")
-        tv = two_view_init(f0.xy[a], f.xy[b], self.cam.fx, min_inliers=120, min_parallax_deg=1.5)
+        tv = two_view_init(f0.xy[a], f.xy[b], self.cam.fx, min_inliers=p.init_min_inliers,
+                           min_parallax_deg=p.init_min_parallax_deg)  # fmt: skip
         if not tv.ok:
             return FrameResult(stamp, None, "init")
         g = tv.good
@@ -186,9 +169,10 @@ class VisualOdometry:
         return np.array(sorted(p for p in pts if p in self.mps), np.int64)
 
     def add_foreign_points(self, keys: list[tuple[str, int]], pos: np.ndarray,
-                           desc: np.ndarray, max_points: int = 1500) -> int:  # fmt: skip
+                           desc: np.ndarray, max_points: int | None = None) -> int:  # fmt: skip
         """Map points the server sent (CCM-SLAM §4.5): searched while tracking like
         the agent's own, never sent back, the oldest forgotten past ``max_points``."""
+        max_points = self.p.foreign_max_points if max_points is None else max_points
         n = 0
         for key, p, d in zip(keys, pos, desc, strict=True):
             local = self.foreign_by_key.get(key)
@@ -216,7 +200,7 @@ class VisualOdometry:
 
     def _search(self, f: Features, T: np.ndarray, P: np.ndarray, D: np.ndarray, radius: float):
         Xc = (P - T[:3, 3]) @ T[:3, :3]
-        uv, ok = self.cam.project(Xc, min_depth=0.05)
+        uv, ok = self.cam.project(Xc, min_depth=self.p.min_depth)
         if not ok.any():
             return np.zeros(0, int), np.zeros(0, int), ok
         sel = np.nonzero(ok)[0]
@@ -238,13 +222,13 @@ class VisualOdometry:
                 return r, pi, kp
         # Wide: around the prediction, then around the last pose (a sudden stop).
         for T0, how in ((T_pred, "wide"), (self.T_last, "still")):
-            pi, kp, _ = self._search(f, T0, P, D, 3 * r0)
+            pi, kp, _ = self._search(f, T0, P, D, self.p.search_widen * r0)
             if len(pi) < self.p.min_inliers:
                 continue
             r = solve_pnp(P[pi], f.xy[kp], self.cam.fx)
             if r.ok and r.inliers.sum() >= self.p.min_inliers and self._plausible(r, T_pred):
                 r2 = solve_pnp(P[pi], f.xy[kp], self.cam.fx, T_guess=r.T_w_c)
-                if r2.ok and r2.inliers.sum() >= r.inliers.sum() * 0.8:
+                if r2.ok and r2.inliers.sum() >= r.inliers.sum() * self.p.refine_keep_ratio:
                     r = r2
                 r.how = how
                 return r, pi, kp
@@ -278,7 +262,7 @@ class VisualOdometry:
         P, D = self._points(pids)
         T_pred = self.T_last @ self.velocity
         res, pi, kp = self._predict(f, T_pred, P, D)
-        weak = res is None or res.inliers.sum() < 2 * self.p.min_inliers
+        weak = res is None or res.inliers.sum() < self._strong
         if weak and self.foreign:
             ids = self._local_points(with_foreign=True)
             P2, D2 = self._points(ids)
@@ -299,16 +283,16 @@ class VisualOdometry:
                 # for seconds flies off (it was reported, and searched around, metres
                 # from the camera), so past ``coast_s`` the velocity dies away.
                 if self.lost_frames * self.dt_ratio * self.p.nominal_dt_s > self.p.coast_s:
-                    self.velocity = _damp(self.velocity, 0.7)
+                    self.velocity = _damp(self.velocity, self.p.coast_damping)
                 self.T_last = T_pred
                 return FrameResult(stamp, T_pred.copy(), "lost", T_pred=T_pred.copy(),
                                    how="lost")  # fmt: skip
             self.relocalized += 1
         # Second pass: with the refined pose, a tighter search finds more points.
-        pi2, kp2, seen = self._search(f, res.T_w_c, P, D, 4.0)
+        pi2, kp2, seen = self._search(f, res.T_w_c, P, D, self.p.refine_radius)
         if len(pi2) >= self.p.min_inliers:
             r2 = solve_pnp(P[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
-            if r2.ok and r2.inliers.sum() >= res.inliers.sum() * 0.8:
+            if r2.ok and r2.inliers.sum() >= res.inliers.sum() * self.p.refine_keep_ratio:
                 res, pi, kp = r2, pi2, kp2
         res, pi, kp = self._gate_foreign(f, res, pids, pi, kp, P)
         for i in pids[seen].tolist():
@@ -359,10 +343,10 @@ class VisualOdometry:
             return res, pi, kp
         fr = np.fromiter((i in self.foreign for i in pids[pi].tolist()), bool, count=len(pi))
         own = ~fr
-        if not fr.any() or own.sum() < 2 * self.p.min_inliers:
+        if not fr.any() or own.sum() < self._strong:
             return res, pi, kp
         r_own = solve_pnp(P[pi[own]], f.xy[kp[own]], self.cam.fx, T_guess=res.T_w_c)
-        if not r_own.ok or r_own.inliers.sum() < 2 * self.p.min_inliers:
+        if not r_own.ok or r_own.inliers.sum() < self._strong:
             return res, pi, kp
         T = r_own.T_w_c
         Xc = (P[pi[fr]] - T[:3, 3]) @ T[:3, :3]
@@ -384,7 +368,7 @@ class VisualOdometry:
         n = self.frames_since_kf * self.dt_ratio
         # Few points tracked: the camera is leaving the map (fast flight into new
         # space), so a keyframe now, while there are still enough to place it.
-        if n_in < self.p.min_inliers * 3:
+        if n_in < self.p.min_inliers * self.p.kf_thin_factor:
             return True
         if n < self.p.kf_min_frames:
             return False
@@ -398,10 +382,10 @@ class VisualOdometry:
         for k in near[: self.p.reloc_kfs]:
             kf = self.kfs[k]
             has = np.nonzero(kf.mp >= 0)[0]
-            if len(has) < 30:
+            if len(has) < self.p.reloc_min_matches:
                 continue
-            a, b = match_descriptors(kf.f.desc[has], f.desc, ratio=0.8)
-            if len(a) < 30:
+            a, b = match_descriptors(kf.f.desc[has], f.desc, ratio=self.p.reloc_match_ratio)
+            if len(a) < self.p.reloc_min_matches:
                 continue
             mp_ids = kf.mp[has[a]]
             P = np.array([self.mps[i].pos for i in mp_ids.tolist()])
@@ -449,20 +433,23 @@ class VisualOdometry:
         mp.obs[kf.id] = k
 
     def _triangulate(self, kf: KeyFrame) -> list[int]:
+        p = self.p
         new = []
         free_new = np.nonzero(kf.mp < 0)[0]
-        for k in sorted(self.kfs, reverse=True)[1:3]:
+        for k in sorted(self.kfs, reverse=True)[1 : 1 + p.tri_kfs]:
             old = self.kfs[k]
             free_old = np.nonzero(old.mp < 0)[0]
-            if len(free_old) < 10 or len(free_new) < 10:
+            if len(free_old) < p.tri_min_free or len(free_new) < p.tri_min_free:
                 continue
-            a, b = match_descriptors(old.f.desc[free_old], kf.f.desc[free_new], ratio=0.75,
-                                     max_dist=50)  # fmt: skip
-            if len(a) < 5:
+            a, b = match_descriptors(old.f.desc[free_old], kf.f.desc[free_new],
+                                     ratio=p.tri_match_ratio,
+                                     max_dist=p.tri_match_max_dist)  # fmt: skip
+            if len(a) < p.tri_min_matches:
                 continue
             ia, ib = free_old[a], free_new[b]
             tri = triangulate(old.T_w_c, kf.T_w_c, old.f.xy[ia], kf.f.xy[ib], self.cam.fx,
-                              max_err_px=2.0, min_parallax_deg=1.0)  # fmt: skip
+                              max_err_px=p.tri_max_err_px,
+                              min_parallax_deg=p.tri_min_parallax_deg)  # fmt: skip
             for j in np.nonzero(tri.good)[0].tolist():
                 if kf.mp[ib[j]] >= 0 or old.mp[ia[j]] >= 0:
                     continue
@@ -479,7 +466,8 @@ class VisualOdometry:
                 continue  # the server's points are judged by the server
             mp = self.mps[i]
             age = kf.id - mp.first_kf
-            if age >= 2 and (mp.found / max(mp.visible, 1) < 0.25 or len(mp.obs) < 2):
+            rarely = mp.found / max(mp.visible, 1) < self.p.cull_min_found_ratio
+            if age >= self.p.cull_min_age_kfs and (rarely or len(mp.obs) < 2):
                 self._remove_mp(i)
 
     def _remove_mp(self, i: int) -> None:
@@ -537,12 +525,12 @@ class VisualOdometry:
                     if k not in kf_ids:
                         kf_ids.add(k)
                         fixed.add(k)
-        if len(pts) < 20:
+        if len(pts) < self.p.ba_min_points:
             return None
         return {
             "poses": {k: self.kfs[k].T_w_c.copy() for k in kf_ids}, "fixed": fixed,
             "points": {i: self.mps[i].pos.copy() for i in pts}, "obs": obs,
-            "focal": self.cam.fx, "max_iters": 5,
+            "focal": self.cam.fx, "max_iters": self.p.ba_max_iters,
         }  # fmt: skip
 
     def _apply_ba(self, r: BAResult) -> None:
