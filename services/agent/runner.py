@@ -59,6 +59,7 @@ class VOProducer:
             self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
         self._sent_kfs: set[int] = set()
+        self._newest_sent = -1
         self._kp_sel: dict[int, np.ndarray] = {}  # keyframe -> the keypoints sent
         self._mp_sent: dict[int, tuple[int, np.ndarray]] = {}  # point -> ref kf, p_ref sent
         self.mp_update_rel = mp_update_rel
@@ -111,8 +112,10 @@ class VOProducer:
             s.keyframe = True
             self._on_keyframe(r)
         self._after_ba()
-        if self.vo.kfs:
-            ref = self.vo.kfs[max(self.vo.kfs)]
+        # KF_ref: the newest keyframe the server can have (the newer ones wait to
+        # settle), so it can place the live pose and send map data around it.
+        ref = self.vo.kfs.get(self._newest_sent)
+        if ref is not None:
             s.kf_ref, s.T_l_ref = ref.id, ref.T_w_c
         return s
 
@@ -201,6 +204,7 @@ class VOProducer:
                 mp_ids=self._own_ids(k.mp[sel]), calib=self.camera.to_array(),
             ))  # fmt: skip
             self._sent_kfs.add(kid)
+            self._newest_sent = max(self._newest_sent, kid)
         if not new:
             return
         # The new points whose reference keyframe (the oldest that sees them) the server
