@@ -6,6 +6,13 @@ communication module, bounds the local map (CCM-SLAM §4.2: past N + B keyframes
 oldest go, unacknowledged ones are lost) and takes the server's map points near KF_ref
 into tracking. :class:`Agent` is the loop with this producer.
 
+What it sends, and why it is small (CCM-SLAM §4.5): a keyframe goes out once the two
+after it have triangulated against it (its associations are final then), with only the
+keypoints that have a map point; each new point goes with its reference keyframe; after
+a local BA, the keyframes' new relative poses and the points that moved by more than
+``comm.mp_update_rel`` of their depth, as updates. Live (``realtime``), local BA runs in
+a process of its own (``vo/ba_worker.py``) and images are read on a camera thread.
+
 The VO runs in its own frame ``l`` and is never moved. What the agent reports as its
 pose is the VO pose mapped through the latest correction from the server
 (``S_g_l``, see ``services.mapper.feedback.frame_correction``): the VO's drift
