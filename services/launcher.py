@@ -54,12 +54,6 @@ class Scale:
         for name in ("mappers", "placerecs", "optimizers"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name} must be at least 1")
-        if self.mappers > 1:
-            # Two mappers today would both take every agent's keyframes and write the
-            # same maps: several need map ownership (leases with fencing, issue 20),
-            # which the mapper does not have yet.
-            raise ValueError("--mappers > 1 needs map ownership leases, not built yet; "
-                             "placerecs and optimizers scale now")  # fmt: skip
 
 
 # Instance i (from 0) of a service listens for metrics on its base port + 10 i: the
@@ -90,10 +84,13 @@ def service_plan(settings: Settings, scale: Scale | None = None) -> list[Service
     ):
         for i in range(n):
             port = base + PORT_STRIDE * i
-            plan.append(ServiceSpec(
-                name if n == 1 else f"{name}-{i + 1}", ["hivemap", name],
-                {**common, "HIVEMAP_METRICS_PORT": str(port)}, port,
-            ))  # fmt: skip
+            env = {**common, "HIVEMAP_METRICS_PORT": str(port)}
+            if name == "mapper" and n > 1:
+                # Each holds map leases under its own name (services/mapper/ownership.py);
+                # one host name would make them one owner.
+                env["HIVEMAP_MAPPER__INSTANCE"] = f"mapper-{i + 1}"
+            plan.append(ServiceSpec(name if n == 1 else f"{name}-{i + 1}", ["hivemap", name],
+                                    env, port))  # fmt: skip
     plan.append(
         ServiceSpec(
             "api",

@@ -12,9 +12,10 @@ check that the lease still holds this owner's token, then ``MULTI`` ... ``EXEC``
 another instance took the map between the check and ``EXEC``, the counter changed and
 ``EXEC`` fails; if the check fails the write is refused before it starts. Either way
 :class:`Fenced` is raised and nothing is written. Renewals touch only the lease key,
-not the counter, so they never make a write retry. A lease that expired and was not
-taken yet still refuses its old owner's writes (the value check); nobody else wrote
-meanwhile, so an owner that finds this can take the lease again (it gets a new token).
+not the counter, so they never make a write retry. A lease that expired unrenewed (an
+owner without a renewal thread, or one back from a pause) and that nobody took since --
+the map's fencing counter still at the owner's token, so nobody else wrote -- is taken
+again by the owner's next write, with a new token; one another owner took refuses it.
 
 The acquisition, renewal and release are Lua scripts: each is a compare-and-set that
 must be atomic (``GET``-then-``SET`` from Python would let two instances both believe
@@ -68,6 +69,16 @@ local token = redis.call('INCR', KEYS[2])
 redis.call('SET', KEYS[1], ARGV[1] .. ' ' .. token, 'PX', ARGV[2])
 return token
 """
+# KEYS: lease, fence. ARGV: owner, lease ms, the token held. A lease that lapsed with
+# nobody taking the map since (the counter still at the token) is taken again: nobody
+# else wrote. Returns the new token, or 0.
+_RETAKE = """
+if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
+if tonumber(redis.call('GET', KEYS[2]) or '0') ~= tonumber(ARGV[3]) then return 0 end
+local token = redis.call('INCR', KEYS[2])
+redis.call('SET', KEYS[1], ARGV[1] .. ' ' .. token, 'PX', ARGV[2])
+return token
+"""
 # KEYS: lease. ARGV: "owner token", lease ms. 1 when renewed, 0 when it is not ours.
 _RENEW = """
 if redis.call('GET', KEYS[1]) == ARGV[1] then
@@ -110,6 +121,7 @@ class Leases:
         self._acquire = r.register_script(_ACQUIRE)
         self._renew = r.register_script(_RENEW)
         self._release = r.register_script(_RELEASE)
+        self._retake = r.register_script(_RETAKE)
 
     def _value(self, map_id: str, token: int) -> str:
         return f"{self.owner} {token}"
@@ -172,6 +184,47 @@ class Leases:
             return sorted(self.tokens)
 
     # --- fenced writes -----------------------------------------------------------------
+    def pipeline(self, map_id: str, *more: str) -> redis.client.Pipeline:
+        """A transaction pipeline for writes of ``map_id`` (and of ``more`` maps, all
+        held): the maps' fencing counters are watched and the leases checked now, so
+        its ``execute()`` fails with ``redis.WatchError`` if another owner took one of
+        them meanwhile; raises :class:`Fenced` if this owner holds them no longer."""
+        maps = (map_id, *more)
+        with self._lock:
+            tokens = [self.tokens.get(m) for m in maps]
+        if any(t is None for t in tokens):
+            self.stats.refused_writes += 1
+            raise Fenced(f"{self.owner} holds no lease on map(s) {', '.join(maps)}")
+        tokens = [self._current(m, t) for m, t in zip(maps, tokens, strict=True)]
+        p = self.r.pipeline(transaction=True)
+        try:
+            p.watch(*(k_fence(m) for m in maps))
+            for m, token in zip(maps, tokens, strict=True):
+                mine = self._value(m, token).encode()
+                if p.get(k_lease(m)) != mine or int(p.get(k_fence(m)) or 0) != token:
+                    self.stats.refused_writes += 1
+                    raise Fenced(f"map {m} is no longer {self.owner}'s (token {token})")
+        except BaseException:
+            p.reset()
+            raise
+        p.multi()
+        return p
+
+    def _current(self, map_id: str, token: int) -> int:
+        """The token to write with: a lease that lapsed unrenewed (an owner without a
+        renewal thread, or one just back from a pause) and that nobody took since is
+        taken again with a new token; otherwise the one held (checked next)."""
+        if self.r.exists(k_lease(map_id)):
+            return token
+        new = int(self._retake(keys=[k_lease(map_id), k_fence(map_id)],
+                               args=[self.owner, self.lease_ms, token]))  # fmt: skip
+        if new == 0:
+            return token
+        with self._lock:
+            if self.tokens.get(map_id) == token:
+                self.tokens[map_id] = new
+        return new
+
     def write(self, map_id: str, fill: Callable[[redis.client.Pipeline], None]) -> list:
         """Runs the writes ``fill`` queues on a pipeline as one transaction, only if this
         owner holds the map's lease; raises :class:`Fenced` otherwise (nothing written).
@@ -181,6 +234,7 @@ class Leases:
         if token is None:
             self.stats.refused_writes += 1
             raise Fenced(f"{self.owner} holds no lease on map {map_id}")
+        token = self._current(map_id, token)
         mine = self._value(map_id, token).encode()
         with self.r.pipeline(transaction=True) as p:
             p.watch(k_fence(map_id))

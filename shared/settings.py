@@ -156,6 +156,11 @@ class MapperSettings(BaseModel):
     # At most one map copy to the optimizer per map this often (a burst of matches
     # right after two maps meet becomes one request).
     optimize_min_interval_s: float = Field(3.0, ge=0)
+    # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
+    # the host name, unique per container; `hivemap up --mappers N` names them), and
+    # the lease time: a dead mapper's maps are taken over within about twice it.
+    instance: str = ""
+    lease_s: float = Field(3.0, gt=0.1)
 
 
 class PlacerecSettings(BaseModel):

@@ -42,6 +42,8 @@ matrices little-endian float64 row-major):
                                    in ``shared/jobs.py``, beside the protocol that uses them
     hm:lease:{m}, hm:fence:{m}  map ownership leases and fencing tokens: laid out in
                                    ``shared/leases.py``, beside the scripts that use them
+    hm:mappers, hm:handover:{m}  live mappers with their load, and hand-over requests:
+                                   ``services/mapper/ownership.py``
 
 A batch of keyframes and map points goes in one MULTI/EXEC transaction (the writers
 take the caller's ``pipeline()``), so a mapper killed mid-write leaves either all of it

@@ -144,3 +144,21 @@ def test_an_owner_paused_past_its_lease_cannot_write_after_resuming(redis_url, t
         proc.kill()
         proc.wait()
         r.close()
+
+
+def test_a_fenced_pipeline_of_two_maps_fails_when_one_is_taken(redis_url):
+    r = connect(redis_url)
+    a, b = Leases(r, "a", 0.2), Leases(r, "b", 0.2)
+    a.acquire("m1"), a.acquire("m2")
+    p = a.pipeline("m1", "m2")
+    p.set("hm:test:x", b"a")
+    time.sleep(0.3)  # both leases ran out; b takes one
+    assert b.acquire("m2") is not None
+    import redis
+
+    with pytest.raises(redis.WatchError):
+        p.execute()
+    assert r.get("hm:test:x") is None
+    with pytest.raises(Fenced):
+        a.pipeline("m1", "m2")
+    r.close()

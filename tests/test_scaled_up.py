@@ -3,10 +3,7 @@ one stack, share the work, and the team still ends in one optimized map."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import urllib.request
-from pathlib import Path
 
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -15,8 +12,6 @@ from shared.jobs import JobQueue
 from shared.settings import Settings
 from shared.store import Store, connect
 from tests.live_stack import get_json, live_stack, wait_for
-
-HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
 
 
 def _metrics(port: int) -> dict[tuple[str, tuple], float]:
@@ -40,11 +35,10 @@ def test_plan_names_and_ports_of_scaled_services():
     assert plan["placerec-2"].env["HIVEMAP_METRICS_PORT"] == str(s.placerec_metrics_port + 10)
 
 
-def test_more_than_one_mapper_is_refused_with_a_reason():
-    r = subprocess.run([HIVEMAP, "up", "--ephemeral", "--mappers", "2"], capture_output=True,
-                       text=True, timeout=60)  # fmt: skip
-    assert r.returncode == 2
-    assert "--mappers > 1 needs map ownership leases" in r.stderr
+def test_scaled_mappers_get_instance_names():
+    plan = {p.name: p for p in service_plan(Settings(), Scale(mappers=3))}
+    names = {plan[f"mapper-{i}"].env["HIVEMAP_MAPPER__INSTANCE"] for i in (1, 2, 3)}
+    assert names == {"mapper-1", "mapper-2", "mapper-3"}
 
 
 def test_two_placerecs_and_two_optimizers_share_a_team(tmp_path):

@@ -33,8 +33,10 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
+import redis
 
 from shared import keys
 from shared.camera import EUROC_FX
@@ -104,6 +106,12 @@ class Collaboration:
         self.reg = registry
         self.store = store
         self.jobs = JobQueue(store.r)
+        # Writes of a map: the service hands in its owner-checked (fenced) pipelines.
+        self.pipeline: Callable[..., redis.client.Pipeline] = lambda *maps: store.pipeline()
+        # A match naming a map another mapper owns (the service arranges a hand-over);
+        # True when it took it up.
+        self.remote_match: Callable[[Match, str | None, str | None], bool] | None = None
+        self.retired: Callable[[str], None] | None = None  # a map merged away
         self.bus: Bus | None = None
         self.loops: dict[str, list[LoopConstraint]] = {}
         self.min_interval = optimize_min_interval_s
@@ -128,9 +136,13 @@ class Collaboration:
         self.max_continues = 3
 
     # --- state --------------------------------------------------------------------------
-    def load(self) -> None:
-        """Loop constraints from Redis, and the loop edges they make."""
-        for map_id, smap in self.reg.maps.items():
+    def load(self, only: set[str] | None = None) -> None:
+        """Loop constraints from Redis, and the loop edges they make (of the maps in
+        ``only``, when given: a map taken over from another mapper)."""
+        for map_id, smap in list(self.reg.maps.items()):
+            if only is not None and map_id not in only:
+                continue
+            self.loops.pop(map_id, None)
             for q, c, S in self.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
@@ -167,6 +179,9 @@ class Collaboration:
     def on_match(self, m: Match) -> str | None:
         """Apply a verified match; returns "merge", "loop" or None (ignored)."""
         qm, cm = self.reg.map_of_kf(m.query_gid), self.reg.map_of_kf(m.cand_gid)
+        remote = qm is None or cm is None
+        if remote and self.remote_match is not None and self.remote_match(m, qm, cm):
+            return None
         if qm is None or cm is None:
             REJECTED.labels(SERVICE, keys.MATCH, "unknown_kf").inc()
             log.warning("match names a keyframe no map holds: %d / %d", m.query_gid, m.cand_gid)
@@ -259,6 +274,8 @@ class Collaboration:
             self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
         MATCHES.labels("merge").inc()
         MERGES.inc()
+        if self.retired is not None:
+            self.retired(source.map_id)
         for g in (MAP_SIZE, MAP_POINTS, QUEUE_DEPTH):
             # A retired map's gauges would report its last size forever.
             with contextlib.suppress(KeyError):
@@ -274,7 +291,7 @@ class Collaboration:
     def _persist(self, map_id: str, aliases: dict[int, int], changed: set[int],
                  loops: list[LoopConstraint]) -> None:  # fmt: skip
         smap = self.reg.maps[map_id]
-        pipe = self.store.pipeline()
+        pipe = self.pipeline(map_id)
         Store.put_aliases(pipe, aliases)
         self.reg.aliases.update(aliases)
         persist.delete_points(pipe, set(aliases), self.reg.names)
@@ -287,7 +304,7 @@ class Collaboration:
 
     def _persist_merge(self, target: str, source: str, kfs: list[int], mps: list[int]) -> None:
         smap = self.reg.maps[target]
-        pipe = self.store.pipeline()
+        pipe = self.pipeline(target, source)
         for g in kfs:
             kf = smap.kfs[g]
             persist.write_kf_state(pipe, kf, target)
@@ -403,7 +420,7 @@ class Collaboration:
                     if smap.drop_observation(kg, mg):
                         changed_kfs.add(kg)
                 self._rescale_handlers(smap, c)
-                pipe = self.store.pipeline()
+                pipe = self.pipeline(c.map_id)
                 for h in reg.handlers_of(c.map_id):
                     persist.write_handler(pipe, h)
                 pipe.execute()
@@ -433,7 +450,7 @@ class Collaboration:
                 smap = reg.get(map_id)
                 if smap is None:
                     return  # merged away: the merge stored the moved map whole
-                pipe = self.store.pipeline()
+                pipe = self.pipeline(map_id)
                 for g in kf_part:
                     kf = smap.kfs.get(g)
                     if kf is not None:

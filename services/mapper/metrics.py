@@ -16,6 +16,17 @@ OPT_REQUESTS = Counter(
     "hivemap_optimize_requests_total", "Map copies sent to the optimizer", ["reason"]
 )
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
+# Ownership (services/mapper/ownership.py), per mapper instance. Gauges mirror the
+# instance's own counts (they are kept in its Ownership and Leases objects).
+MAPS_OWNED = Gauge("hivemap_mapper_maps_owned", "Maps whose lease this mapper holds")
+LEASE_RENEWALS = Gauge("hivemap_mapper_lease_renewals", "Map lease renewals since start")
+TAKEOVERS = Gauge(
+    "hivemap_mapper_takeovers", "Maps taken over from a mapper that stopped renewing them"
+)
+HANDOVERS = Gauge("hivemap_mapper_handovers", "Maps handed to another mapper for a merge")
+FENCED_WRITES = Gauge(
+    "hivemap_mapper_fenced_writes", "Writes refused because the map's lease was not ours"
+)
 LOCK_HOLD = Histogram(
     "hivemap_map_lock_hold_seconds",
     "How long a map's lock was held at a time (registration, fusion, matches, corrections)",

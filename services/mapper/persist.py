@@ -88,9 +88,10 @@ def write_removed_kf(pipe, h: AgentHandler, kf: ServerKeyframe, dead_mps: list[i
 
 
 def load_all(
-    store: Store, params: MapperParams
+    store: Store, params: MapperParams, only: set[str] | None = None
 ) -> tuple[dict[str, ServerMap], dict[str, AgentHandler]]:
-    """Rebuild maps, covisibility and agent handlers from Redis."""
+    """Rebuild maps, covisibility and agent handlers from Redis (of the maps in
+    ``only`` when given: the ones this mapper owns)."""
     maps: dict[str, ServerMap] = {}
     handlers: dict[str, AgentHandler] = {}
     aliases = store.aliases()
@@ -100,6 +101,8 @@ def load_all(
         if st is None:
             continue
         map_id = st.map_id
+        if only is not None and map_id not in only:
+            continue
         smap = maps.setdefault(map_id, ServerMap(map_id))
         ah = AgentHandler(agent, st.index, smap, st.S_m_l, params, st.lam)
         ah.aliases = aliases

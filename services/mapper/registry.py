@@ -141,6 +141,19 @@ class MapRegistry:
         while self.batches_waiting() and time.monotonic() < end:
             time.sleep(0.002)
 
+    def drop(self, map_id: str) -> list[AgentHandler]:
+        """Forget ``map_id`` and its agents: another mapper owns it now (its lease was
+        lost or handed over). Its actor stops without applying what it has queued (those
+        batches were never acknowledged: the agents resend them to the new owner)."""
+        with self._lock:
+            agents = self._by_map.pop(map_id, set())
+            dropped = [self._handlers.pop(a) for a in sorted(agents) if a in self._handlers]
+            self.maps.pop(map_id, None)
+            a = self.actors.pop(map_id, None)
+        if a is not None:
+            a.dropped = True
+        return dropped
+
     # --- merges ------------------------------------------------------------------------
     def merge(self, source: str, target: str, S_t_s: Sim3) -> list[AgentHandler]:
         """Map ``source`` (already moved into ``target`` by ``merge.move_map``) is gone:

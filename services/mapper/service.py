@@ -22,6 +22,10 @@ only fills its own map's queue.
 Every batch is stored in one MULTI/EXEC transaction before its ack is sent, so an
 ack always means "stored". On start, maps and handlers are rebuilt from Redis.
 
+Several mappers share the maps (``ownership``): each owns some through leases in Redis,
+keeps only the batches of its maps' agents, writes through pipelines fenced by the
+map's token, and takes over the maps of a mapper that stopped renewing them.
+
 Redundant-keyframe rejection (CCM-SLAM §4.6) runs when an actor is idle and, in a map
 several agents share, between batches too (see ``MapActor._run``): agents flying the
 same place keep adding observers to the same points, and every later keyframe pays for
@@ -38,6 +42,7 @@ from __future__ import annotations
 import logging
 import queue
 import random
+import socket
 import threading
 import time
 
@@ -46,7 +51,8 @@ import redis
 
 from shared import keys
 from shared.geometry import Sim3
-from shared.messages import Ack, DecodeError, KeyframeBatch, PoseUpdate, packb
+from shared.leases import Fenced
+from shared.messages import Ack, DecodeError, KeyframeBatch, Match, PoseUpdate, packb
 from shared.metrics import KEYFRAME_LATENCY, MAP_SIZE, PROCESSING, REJECTED, STORED, UP
 from shared.settings import Settings
 from shared.store import LivePose, Store, connect
@@ -57,7 +63,18 @@ from .agent_health import HEALTH
 from .collab import Collaboration
 from .feedback import build_chunk
 from .locks import MapLock
-from .metrics import CULLED, FEEDBACK_BYTES, MAP_POINTS, QUEUE_DEPTH
+from .metrics import (
+    CULLED,
+    FEEDBACK_BYTES,
+    FENCED_WRITES,
+    HANDOVERS,
+    LEASE_RENEWALS,
+    MAP_POINTS,
+    MAPS_OWNED,
+    QUEUE_DEPTH,
+    TAKEOVERS,
+)
+from .ownership import Ownership
 from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
 from .registry import MapRegistry
@@ -94,6 +111,7 @@ class MapActor:
         self._events_since = 0.0
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
         self.retired_into: str | None = None  # set when this map was merged into another
+        self.dropped = False  # set when another mapper took the map: stop at once
 
     def start(self) -> None:
         self.thread.start()
@@ -101,6 +119,8 @@ class MapActor:
     def _run(self) -> None:
         svc = self.svc
         while not self.stop.is_set():
+            if self.dropped:
+                return
             try:
                 h, batch, recv_ns, key = self.q.get(timeout=0.05)
             except queue.Empty:
@@ -111,12 +131,18 @@ class MapActor:
                 continue
             if h.smap is not self.smap:
                 # The agent's map was merged into another after this batch was queued.
-                self.reg.actor(h.map_id).q.put((h, batch, recv_ns, key))
+                if self.reg.is_local(h.map_id):
+                    self.reg.actor(h.map_id).q.put((h, batch, recv_ns, key))
                 continue
             t_batch = time.monotonic()
             try:
                 with self.lock:
                     svc.apply(h, batch, recv_ns)
+            except Fenced as e:
+                log.warning("batch of %s not stored: %s", h.agent, e)
+            except redis.WatchError:
+                log.warning("batch of %s not stored: map %s taken by another mapper",
+                            h.agent, self.smap.map_id)  # fmt: skip
             except redis.RedisError:
                 log.exception("redis write failed; batch not acknowledged")
             except Exception:
@@ -242,6 +268,14 @@ class MapperService:
         self._fb_sent: dict[str, set[int]] = {}
         self.collab = Collaboration(self.registry, self.store,
                                     settings.mapper.optimize_min_interval_s)  # fmt: skip
+        m = settings.mapper
+        self.own = Ownership(self.store, m.instance or socket.gethostname(), m.lease_s)
+        self.collab.pipeline = self.own.pipeline
+        self.collab.remote_match = self._remote_match
+        self.collab.retired = self.own.leases.release
+        self._routes: dict[str, tuple[bool, float]] = {}  # agent -> (ours, until)
+        self._pending_merges: dict[str, Match] = {}  # map asked for -> the match
+        self._take_lock = threading.Lock()
 
     # --- state (owned by the registry; these read it) ------------------------------------
     @property
@@ -257,9 +291,13 @@ class MapperService:
         return self.registry.names
 
     def load(self) -> None:
-        maps, handlers = persist.load_all(self.store, self.params)
+        """The maps this mapper owns, from Redis: the ones whose lease names it (a
+        restart) and, when it is the least loaded, the ones nobody holds."""
+        self._heartbeat()
+        mine = {m for m in self.store.maps() if self._may_own(m)}
+        maps, handlers = persist.load_all(self.store, self.params, only=mine)
         self.registry.load(maps, handlers, self.store.agent_names())
-        self.collab.load()
+        self.collab.load(set(maps))
         for h in handlers.values():
             log.info("resumed agent %s: map %s, %d keyframes", h.agent, h.map_id,
                      sum(1 for k in h.smap.kfs.values() if k.agent == h.agent),
@@ -277,12 +315,15 @@ class MapperService:
         with self._lock:
             h = reg.handler(agent)
             if h is None:
+                new_map = map_id or initial_map_id(agent)
+                if not reg.is_local(new_map) and self.own.leases.acquire(new_map) is None:
+                    raise Fenced(f"map {new_map} of new agent {agent} is another mapper's")
                 idx = self.store.agent_index(agent)
                 reg.names[idx] = agent
-                smap = reg.ensure_map(map_id or initial_map_id(agent))
+                smap = reg.ensure_map(new_map)
                 h = AgentHandler(agent, idx, smap, S_m_l or Sim3.identity(), self.params)
                 h.aliases = reg.aliases
-                pipe = self.store.pipeline()
+                pipe = self.own.pipeline(smap.map_id)
                 persist.write_handler(pipe, h, new=True)
                 pipe.execute()
                 reg.add_handler(h)
@@ -329,7 +370,7 @@ class MapperService:
         t0 = time.perf_counter()
         res = h.ingest(batch, time.monotonic())
         if res.changed:
-            pipe = self.store.pipeline()
+            pipe = self.own.pipeline(h.map_id)
             persist.write_result(pipe, h, res, self.names)
             pipe.execute()
         held, missing = h.blocked()
@@ -368,7 +409,7 @@ class MapperService:
             n += min(len(h.to_fuse), left) if left is not None else len(h.to_fuse)
             fres = h.fuse_new(left)
             if fres.changed:
-                pipe = self.store.pipeline()
+                pipe = self.own.pipeline(smap.map_id)
                 persist.write_result(pipe, h, fres, self.names)
                 pipe.execute()
         return n
@@ -388,7 +429,7 @@ class MapperService:
         if not victims:
             return 0
         by_agent = {h.agent: h for h in mine}
-        pipe = self.store.pipeline()
+        pipe = self.own.pipeline(smap.map_id)
         for g in victims:
             kf = smap.kfs[g]
             h = by_agent.get(kf.agent)
@@ -504,6 +545,7 @@ class MapperService:
                                    lambda it: c.on_correction_bytes(it.key, it.payload),
                                    SERVICE, "correction")),
             ("pose", self._pose_worker, ()),
+            ("leases", self._keep_leases, ()),
             ("optimize", self._optimize_scheduler, ()),
         ]  # fmt: skip
         for name, fn, args in loops:
@@ -514,10 +556,150 @@ class MapperService:
         log.info("mapper running")
 
     def _dispatch(self, item: Received) -> None:
+        agent = keys.agent_of(item.key)
+        if agent is not None and not self.serves(agent):
+            return  # another mapper owns this agent's map
         batch = self.decode_kf(item.key, item.payload)
         if batch is not None:
-            h = self.handler(batch.agent)
-            self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
+            try:
+                h = self.handler(batch.agent)
+            except Fenced as e:
+                log.info("batch of %s left to another mapper: %s", batch.agent, e)
+                return
+            if self.registry.is_local(h.map_id):
+                self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
+
+    # --- ownership (services/mapper/ownership.py) ---------------------------------------
+    def serves(self, agent: str) -> bool:
+        """Whether this mapper takes ``agent``'s batches: it owns the agent's map, or
+        the agent is new (or its map orphaned) and this mapper is the least loaded."""
+        h = self.registry.handler(agent)
+        if h is not None:
+            return h.map_id in self.own.leases.tokens
+        now = time.monotonic()
+        got = self._routes.get(agent)
+        if got is not None and got[1] > now:
+            return got[0]
+        st = self.store.agent_state(agent)
+        if st is None:
+            ours = self.own.is_least_loaded()
+        else:
+            ours = self._may_own(st.map_id) and self.take_map(st.map_id)
+        self._routes[agent] = (ours, now + 0.5)
+        return ours
+
+    def _may_own(self, map_id: str) -> bool:
+        """Takes the map's lease if it names this mapper, or if nobody holds it and this
+        mapper is the least loaded."""
+        owner = self.own.owner(map_id)
+        if owner is not None and owner != self.own.id:
+            return False
+        if owner is None and not self.own.is_least_loaded():
+            return False
+        return self.own.leases.acquire(map_id) is not None
+
+    def take_map(self, map_id: str) -> bool:
+        """Loads a map this mapper holds the lease of (taken over, handed over) from
+        Redis into the registry, and starts its actor."""
+        with self._take_lock:  # the dispatcher and the lease keeper both take maps
+            return self._take_map(map_id)
+
+    def _take_map(self, map_id: str) -> bool:
+        if self.registry.is_local(map_id):
+            return True
+        if self.own.leases.acquire(map_id) is None:
+            return False
+        maps, handlers = persist.load_all(self.store, self.params, only={map_id})
+        if map_id not in maps:
+            self.own.leases.release(map_id)  # merged away or empty meanwhile
+            return False
+        with self._lock:
+            self.registry.load(maps, handlers, self.store.agent_names())
+            self.collab.load({map_id})
+        if self.session is not None:
+            self.registry.actor(map_id)
+        self._routes.clear()
+        log.info("took map %s (%d keyframes, agents %s)", map_id, len(maps[map_id].kfs),
+                 ", ".join(sorted(handlers)))  # fmt: skip
+        return True
+
+    def drop_map(self, map_id: str, why: str) -> None:
+        dropped = self.registry.drop(map_id)
+        self._routes.clear()
+        log.warning("dropped map %s (%s); agents %s", map_id, why,
+                    ", ".join(h.agent for h in dropped))  # fmt: skip
+
+    def _heartbeat(self) -> None:
+        self.own.heartbeat(len(self.registry.handlers()), len(self.registry.maps))
+        for g, v in ((MAPS_OWNED, len(self.own.leases.held())),
+                     (LEASE_RENEWALS, self.own.leases.stats.renewals),
+                     (TAKEOVERS, self.own.takeovers), (HANDOVERS, self.own.handovers),
+                     (FENCED_WRITES, self.own.leases.stats.refused_writes)):  # fmt: skip
+            g.set(v)
+
+    def _keep_leases(self) -> None:
+        """Every third of the lease: renew, drop what was lost, give maps asked for,
+        take what was handed over, and take one orphaned map when least loaded."""
+        own = self.own
+        while not self._stop.wait(own.lease_s / 3):
+            try:
+                for m in own.leases.renew():
+                    self.drop_map(m, "lease lost")
+                for m in list(self.registry.maps):
+                    asker = own.handover_asked(m)
+                    if asker is not None and asker != own.id:
+                        self._hand_over(m, asker)
+                for m, match in list(self._pending_merges.items()):
+                    if own.owner(m) is None and self.take_map(m):
+                        del self._pending_merges[m]
+                        own.handover_done(m)
+                        self.collab.on_match(match)
+                for m in self.store.maps():
+                    if not self.registry.is_local(m) and own.owner(m) is None \
+                            and own.is_least_loaded() and self.take_map(m):  # fmt: skip
+                        own.takeovers += 1
+                        break  # one per round: the next goes to whoever is least loaded
+                self._heartbeat()
+            except Exception:
+                log.exception("lease upkeep failed")
+
+    def _hand_over(self, map_id: str, asker: str) -> None:
+        """Gives ``map_id`` to ``asker``: what is queued is applied and acknowledged
+        first, then the lease is released and the map dropped."""
+        a = self.registry.actors.get(map_id)
+        deadline = time.monotonic() + 2.0
+        while a is not None and a.q.qsize() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with self.registry.lock(map_id):
+            self.own.leases.release(map_id)
+            self.drop_map(map_id, f"handed over to {asker}")
+        self.own.handovers += 1
+
+    def _remote_match(self, m: Match, qm: str | None, cm: str | None) -> bool:
+        """A match between a map of this mapper and one another owns: the owner of the
+        map with the smaller id asks for the other (see ``ownership``)."""
+        if qm is None and cm is None:
+            return True  # neither map is ours: the owners deal with it
+        local = qm if qm is not None else cm
+        other = self._current_map(m.cand_map if qm is not None else m.query_map)
+        if other is None or other == local or self.registry.is_local(other):
+            return False
+        if local < other and other not in self._pending_merges:
+            self._pending_merges[other] = m
+            self.own.request_handover(other)
+            log.info("asked for map %s (owner %s) to merge it with %s", other,
+                     self.own.owner(other), local)  # fmt: skip
+        return True
+
+    def _current_map(self, map_id: str) -> str | None:
+        for _ in range(64):
+            info = self.store.map_info(map_id)
+            if info is None:
+                return None
+            if info["merged_into"] is None:
+                return map_id
+            map_id = info["merged_into"]
+        return None
 
     def _optimize_scheduler(self) -> None:
         """Sends debounced optimization requests (a copy of the map each)."""
