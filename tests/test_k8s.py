@@ -5,6 +5,7 @@ scalable services can be scaled (no fixed container name or host port)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import kubernetes_validate
@@ -73,10 +74,21 @@ def _k8s_services() -> dict[str, tuple[list[str], dict[str, str], int, int]]:
         env: dict[str, str] = {}
         for src in c.get("envFrom", []):
             env.update(config[src["configMapRef"]["name"]])
-        env.update({e["name"]: str(e["value"]) for e in c.get("env", [])})
+        for e in c.get("env", []):
+            if "value" in e:
+                env[e["name"]] = _placeholders(str(e["value"]))
+            else:  # from the Secret: what compose takes from the user's environment
+                assert e["valueFrom"]["secretKeyRef"]["name"] == "hivemap-secrets", e
+                env[e["name"]] = "{" + e["valueFrom"]["secretKeyRef"]["key"] + "}"
         (port,) = [p["containerPort"] for p in c["ports"]]
         out[name] = (c["args"], env, port, d["spec"]["replicas"])
     return out
+
+
+def _placeholders(v: str) -> str:
+    """Compose's ``${VAR:?why}`` and Kubernetes' ``$(VAR)`` both as ``{VAR}``."""
+    v = re.sub(r"\$\{([A-Z0-9_]+)(:\?[^}]*)?\}", r"{\1}", v)
+    return re.sub(r"\$\(([A-Z0-9_]+)\)", r"{\1}", v)
 
 
 def _compose_services() -> dict[str, dict]:
@@ -94,8 +106,11 @@ def test_compose_manifests_and_hivemap_up_list_the_same_services(clean_env):
         args, env, port, _ = k8s[name]
         assert args == spec.argv[1:] == compose[name]["command"], name
         assert port == spec.http_port, name
-        c_env = {k: str(v) for k, v in compose[name]["environment"].items()}
-        assert env == c_env, (name, set(env) ^ set(c_env))
+        c_env = {k: _placeholders(str(v)) for k, v in compose[name]["environment"].items()}
+        # The Secret's own variables are what compose interpolates from the environment.
+        secret = {k for k, v in env.items() if v == "{" + k + "}"}
+        assert {k: v for k, v in env.items() if k not in secret or k in c_env} == c_env, \
+            (name, set(env) ^ set(c_env))  # fmt: skip
         # The plan's own settings (ports) are the same value in all three.
         for k, v in spec.env.items():
             if k.endswith("_PORT"):
