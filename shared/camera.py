@@ -144,8 +144,8 @@ class PinholeRadTan:
         """Read an EuRoC ``sensor.yaml`` (or the same keys in any yaml file)."""
         path = Path(path)
         try:
-            text = path.read_text()
-        except OSError as e:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
             raise CalibrationError(f"{path}: cannot read calibration: {e}") from e
         try:
             # EuRoC files start with a %YAML directive and use OpenCV tags in places.

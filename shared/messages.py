@@ -20,6 +20,8 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
+from shared import keys
+
 _ALLOWED_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u2", "<u4", "|i1", "|b1"}
 
 
@@ -110,7 +112,20 @@ def _opt_ids(d: dict, key: str) -> np.ndarray | None:
 def _int(v: Any, name: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise DecodeError(f"{name}: expected an integer")
+    # Every integer is stored as int64 (numpy, Redis): a larger one would overflow there.
+    if not -(2**63) <= v < 2**63:
+        raise DecodeError(f"{name}: out of the int64 range")
     return v
+
+
+def _id(v: Any, name: str) -> str:
+    """An agent or map id: it becomes part of key expressions and Redis keys."""
+    try:
+        return keys.check_id(_str(v, name), name)
+    except DecodeError:
+        raise
+    except ValueError as e:
+        raise DecodeError(str(e)) from None
 
 
 def _str(v: Any, name: str) -> str:
@@ -548,7 +563,7 @@ def _sim3(v: Any, name: str) -> np.ndarray:
 
 class _Record:
     SCHEMA: ClassVar[str] = ""
-    # name -> ("int" | "str" | "float" | "dict") or (dtype, shape)
+    # name -> ("int" | "str" | "id" | "float" | "dict") or (dtype, shape)
     FIELDS: ClassVar[dict[str, Any]] = {}
     OPTIONAL: ClassVar[tuple[str, ...]] = ()
 
@@ -575,6 +590,8 @@ class _Record:
                 out[name] = _int(v, name)
             elif spec == "str":
                 out[name] = _str(v, name)
+            elif spec == "id":
+                out[name] = _id(v, name)
             elif spec == "float":
                 if isinstance(v, bool) or not isinstance(v, (int, float)):
                     raise DecodeError(f"{name}: expected a number")
@@ -606,7 +623,7 @@ class KeyframeEvent(_Record):
 
     SCHEMA: ClassVar[str] = "hivemap.kf_event/1"
     FIELDS: ClassVar[dict[str, Any]] = {
-        "map_id": "str", "agent": "str", "gid": "int", "kf_id": "int", "stamp_ns": "int",
+        "map_id": "id", "agent": "id", "gid": "int", "kf_id": "int", "stamp_ns": "int",
         "T_m_kf": ("<f8", (4, 4)), "fx": "float",
         "xy": ("<f8", (None, 2)), "octaves": ("|u1", ("xy",)),
         "descriptors": ("|u1", ("xy", 32)), "mp": ("<i8", ("xy",)),
@@ -637,7 +654,7 @@ class Match(_Record):
 
     SCHEMA: ClassVar[str] = "hivemap.match/1"
     FIELDS: ClassVar[dict[str, Any]] = {
-        "query_map": "str", "query_gid": "int", "cand_map": "str", "cand_gid": "int",
+        "query_map": "id", "query_gid": "int", "cand_map": "id", "cand_gid": "int",
         "S_q_c": ("<f8", (4, 4)), "mp_q": ("<i8", (None,)), "mp_c": ("<i8", ("mp_q",)),
         "inliers": "int", "score": "float", "sent_ns": "int",
     }  # fmt: skip
@@ -674,7 +691,7 @@ class OptimizeRequest(_Record):
 
     SCHEMA: ClassVar[str] = "hivemap.optimize/1"
     FIELDS: ClassVar[dict[str, Any]] = {
-        "map_id": "str", "version": "int", "reason": "str", "sent_ns": "int", "fx": "float",
+        "map_id": "id", "version": "int", "reason": "str", "sent_ns": "int", "fx": "float",
         "kf_gids": ("<i8", (None,)), "T_m_kf": ("<f8", ("kf_gids", 4, 4)),
         "fixed_gids": ("<i8", (None,)), "edges": ("<i8", (None, 2)),
         "loops": ("<i8", (None, 2)), "S_loop": ("<f8", ("loops", 4, 4)),
@@ -757,7 +774,7 @@ class CorrectionMsg(_Record):
 
     SCHEMA: ClassVar[str] = "hivemap.correction/1"
     FIELDS: ClassVar[dict[str, Any]] = {
-        "map_id": "str", "base_version": "int", "sent_ns": "int",
+        "map_id": "id", "base_version": "int", "sent_ns": "int",
         "kf_gids": ("<i8", (None,)), "T_m_kf": ("<f8", ("kf_gids", 4, 4)),
         "kf_scale": ("<f8", ("kf_gids",)),
         "mp_gids": ("<i8", (None,)), "mp_pos": ("<f8", ("mp_gids", 3)),
@@ -806,7 +823,7 @@ class MapMerged(_Record):
 
     SCHEMA: ClassVar[str] = "hivemap.map_merged/1"
     FIELDS: ClassVar[dict[str, Any]] = {
-        "source": "str", "target": "str", "S_t_s": ("<f8", (4, 4)), "sent_ns": "int",
+        "source": "id", "target": "id", "S_t_s": ("<f8", (4, 4)), "sent_ns": "int",
     }  # fmt: skip
     source: str
     target: str
@@ -819,7 +836,9 @@ def _envelope(data: bytes, schema: str) -> dict:
     if not isinstance(d, dict):
         raise DecodeError("message is not a map")
     got = d.get("schema")
-    if got != schema:
+    # isinstance first: an array in the schema field would make != elementwise (found by
+    # tests/test_fuzz.py; it escaped as a plain ValueError).
+    if not isinstance(got, str) or got != schema:
         name = schema.split("/")[0]
         if isinstance(got, str) and got.split("/")[0] == name:
             raise DecodeError(f"unsupported version {got!r}; this build speaks {schema!r}")

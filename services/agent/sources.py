@@ -17,6 +17,7 @@ raises :class:`SourceError` naming the file.
 from __future__ import annotations
 
 import csv
+import io
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -42,6 +43,16 @@ class Frame:
     image: np.ndarray  # uint8 grayscale
 
 
+def _text(path: Path) -> str:
+    """An index file's text; bytes that are not UTF-8 are a bad index, not a crash."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise SourceError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from e
+    except OSError as e:
+        raise SourceError(f"{path}: cannot read: {e}") from e
+
+
 def _calib(path: Path) -> PinholeRadTan:
     try:
         return PinholeRadTan.from_yaml(path)
@@ -50,8 +61,11 @@ def _calib(path: Path) -> PinholeRadTan:
 
 
 def _read_gray(path: Path, cam: PinholeRadTan) -> np.ndarray:
-    if not path.is_file():
-        raise SourceError(f"{path}: image file is missing")
+    try:
+        if not path.is_file():
+            raise SourceError(f"{path}: image file is missing")
+    except OSError as e:  # a name the index made up: too long, not encodable
+        raise SourceError(f"{path}: bad image path: {e}") from e
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise SourceError(f"{path}: not a readable image (corrupt or unsupported)")
@@ -88,14 +102,17 @@ class EurocSource(ImageSource):
         self.name = f"euroc:{path}"
         self.camera = _calib(p / "sensor.yaml")
         self.items: list[tuple[int, Path]] = []
-        with open(p / "data.csv", newline="") as f:
-            for n, row in enumerate(csv.reader(f), start=1):
+        rows = csv.reader(io.StringIO(_text(p / "data.csv"), newline=""))
+        try:
+            for n, row in enumerate(rows, start=1):
                 if not row or row[0].startswith("#"):
                     continue
                 try:
                     self.items.append((int(row[0]), p / "data" / row[1].strip()))
                 except (ValueError, IndexError) as e:
                     raise SourceError(f"{p / 'data.csv'}:{n}: bad row {row!r}") from e
+        except csv.Error as e:  # a NUL byte, an unclosed quote
+            raise SourceError(f"{p / 'data.csv'}: not CSV: {e}") from e
         gt = p.parent / "state_groundtruth_estimate0" / "data.csv"
         self.ground_truth = load_euroc_gt(gt) if gt.exists() else None
 
@@ -116,7 +133,7 @@ class TumSource(ImageSource):
             raise SourceError(f"{idx}: TUM index file is missing")
         self.camera = _calib(Path(calib) if calib else p / "camera.yaml")
         self.items: list[tuple[int, Path]] = []
-        for n, ln in enumerate(idx.read_text().splitlines(), start=1):
+        for n, ln in enumerate(_text(idx).splitlines(), start=1):
             ln = ln.strip()
             if not ln or ln.startswith("#"):
                 continue
