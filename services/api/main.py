@@ -21,7 +21,12 @@ from .models import ErrorOut
 from .routes import agents, health, live, maps, viewer, ws
 from .security import Protected, check_exposure
 
-UNAUTHORIZED = {401: {"model": ErrorOut, "description": "missing or wrong API token"}}
+# What the data routes may answer besides 200, all in the one error shape (errors.py).
+ERRORS = {
+    401: {"model": ErrorOut, "description": "missing or wrong API token"},
+    404: {"model": ErrorOut, "description": "unknown agent or map"},
+    422: {"model": ErrorOut, "description": "malformed request"},
+}
 
 
 def create_app(settings: Settings) -> FastAPI:
@@ -74,7 +79,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     app.include_router(health.router)
     for r in (agents.router, maps.router):
-        app.include_router(r, dependencies=Protected, responses=UNAUTHORIZED)
+        app.include_router(r, dependencies=Protected, responses=ERRORS)
     app.include_router(viewer.router)  # the page route checks it; its script and style hold no data
     # The WebSocket routes check the token themselves, before accepting.
     app.include_router(ws.router)

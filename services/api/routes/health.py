@@ -18,7 +18,8 @@ def health() -> dict:
     return {"status": "ok"}
 
 
-@router.get("/ready")
+@router.get("/ready", responses={503: {"description": "Redis unreachable", "content": {
+    "application/json": {"schema": {"type": "object"}}}}})  # fmt: skip
 def ready(store: StoreDep):
     try:
         store.ping()
@@ -27,7 +28,13 @@ def ready(store: StoreDep):
     return {"status": "ready"}
 
 
-@router.get("/metrics")
+TEXT = {"text/plain": {"schema": {"type": "string"}}}
+
+
+PROMETHEUS = {200: {"description": "Prometheus text format", "content": TEXT}}
+
+
+@router.get("/metrics", response_class=Response, responses=PROMETHEUS)
 def metrics() -> Response:
     body, ctype = metrics_text()
     return Response(body, media_type=ctype)
