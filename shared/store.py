@@ -112,7 +112,7 @@ class LivePose:
                 str(d["agent"]), str(d["map_id"]), int(d["stamp_ns"]), T, int(d["kf_ref"]),
                 str(d["tracking"]), float(d["fps"]), int(d["recv_ns"]),
             )  # fmt: skip
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:  # int(inf): Overflow
             raise DecodeError(f"live pose: {type(e).__name__}: {e}") from e
 
 

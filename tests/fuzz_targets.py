@@ -270,9 +270,9 @@ def targets(redis_url: str) -> list[Target]:
         Target("optimize", OptimizeRequest.decode, record_seed(OptimizeRequest), "optimizer",
                K_JOBS, lambda b: optimizer.decode(Job("1-0", "map-A", b, 1, False))),
         Target("ack", Ack.decode, (GOLDEN / "ack_v1.bin").read_bytes(), "agent", k_ack,
-               lambda b: agent._on_ack(b, k_ack)),
+               lambda b: agent._on_message(b, k_ack)),
         Target("map_chunk", MapChunk.decode, chunk_seed(), "agent", k_map,
-               lambda b: agent._on_ack(b, k_map)),
+               lambda b: agent._on_message(b, k_map)),
         Target("live_pose", LivePose.decode, live_pose_seed(), "api", "pose-channel"),
     ]  # fmt: skip
 
