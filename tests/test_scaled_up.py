@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import urllib.request
 
+from live_stack import get_json, live_stack, wait_for
 from prometheus_client.parser import text_string_to_metric_families
 
 from services.launcher import Scale, service_plan
 from shared.jobs import JobQueue
 from shared.settings import Settings
 from shared.store import Store, connect
-from tests.live_stack import get_json, live_stack, wait_for
 
 
 def _metrics(port: int) -> dict[tuple[str, tuple], float]:
