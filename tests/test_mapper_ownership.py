@@ -68,6 +68,7 @@ def test_three_mappers_share_agents_fail_over_and_fence(settings, tmp_path):
     leases = Leases(r, "observer")
     world = LandmarkWorld(0)
     runners, threads, results = [], [], {}
+    stop = threading.Event()
     try:
         assert _wait(lambda: r.hlen("hm:mappers") == 3, 60), \
             {n: m.log.read_text()[-800:] for n, m in mappers.items()}  # fmt: skip
@@ -78,7 +79,7 @@ def test_three_mappers_share_agents_fail_over_and_fence(settings, tmp_path):
             a, b = 300 * i, 300 * i + 1500
             sim = SimAgent(Trajectory(gt.stamps_ns[a:b], gt.poses[a:b]), world,
                            drift=DriftModel(), seed=40 + i)  # fmt: skip
-            runner = SimAgentRunner(settings, agent, sim, speed=2.0)
+            runner = SimAgentRunner(settings, agent, sim, speed=2.0, stop=stop)
             t = threading.Thread(target=lambda r_=runner: results.setdefault(r_.agent, r_.run()))
             t.start()
             runners.append(runner)
@@ -136,10 +137,64 @@ def test_three_mappers_share_agents_fail_over_and_fence(settings, tmp_path):
             [ln[-120:] for ln in text.splitlines() if "not stored" in ln or "dropped" in ln],
         )
     finally:
-        for runner in runners:
-            runner.stop_event.set()
+        stop.set()
         for t in threads:
             t.join(30)
+        for m in mappers.values():
+            m.close()
+        r.close()
+
+
+def test_a_match_across_two_owners_hands_one_map_over_and_merges(settings, tmp_path):
+    """Two agents over the same place on two mappers: place recognition matches their
+    maps, one owner hands its map to the other, the merge runs, nothing acked is lost."""
+    from services.placerec.service import PlacerecService
+
+    mappers = {n: Mapper(settings, tmp_path, n) for n in ("m1", "m2")}
+    placerec = PlacerecService(settings)
+    placerec.start()
+    r = connect(settings.redis_url)
+    store = Store(r)
+    leases = Leases(r, "observer")
+    world = LandmarkWorld(0)
+    runners, threads, results = [], [], {}
+    stop = threading.Event()
+    try:
+        assert _wait(lambda: r.hlen("hm:mappers") == 2, 60)
+        for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
+            gt = load_euroc_gt(seq)
+            sim = SimAgent(Trajectory(gt.stamps_ns[:900], gt.poses[:900]), world,
+                           drift=DriftModel(), seed=20 + i)  # fmt: skip
+            runner = SimAgentRunner(settings, agent, sim, speed=2.0, stop=stop)
+            t = threading.Thread(target=lambda r_=runner: results.setdefault(r_.agent, r_.run()))
+            t.start()
+            runners.append(runner)
+            threads.append(t)
+            assert _wait(lambda agent=agent: leases.owner_of(f"map-{agent}"), 30), agent
+            if i == 0:
+                time.sleep(3 * LEASE_S)  # A's load is in the heartbeats: B goes elsewhere
+        owners = {m: leases.owner_of(m)[0] for m in ("map-A", "map-B")}
+        print("map owners before the merge:", owners)
+        assert sorted(owners.values()) == ["m1", "m2"], owners
+        assert _wait(lambda: len(store.maps()) == 1, 120), \
+            {n: m.log.read_text()[-1500:] for n, m in mappers.items()}  # fmt: skip
+        for t in threads:
+            t.join(240)
+        (merged,) = store.maps()
+        for agent in "AB":
+            res = results[agent]
+            stored = store.keyframe_ids(agent)
+            assert res.all_acked, agent
+            assert len(stored) == len(set(stored)) == res.acked_keyframes, agent
+            assert store.agent_state(agent).map_id == merged
+        logs = {n: m.log.read_text() for n, m in mappers.items()}
+        assert any("handed over to" in x for x in logs.values()), logs
+        print("merged into", merged, "owned by", leases.owner_of(merged))
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(30)
+        placerec.stop()
         for m in mappers.values():
             m.close()
         r.close()
