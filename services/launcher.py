@@ -17,6 +17,7 @@ import secrets
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from pydantic import SecretStr
 from shared.redis_server import RedisServer, free_port
 from shared.runtime import set_priority
 from shared.settings import DEFAULT_ROUTER, Settings
+from shared.zenoh_auth import CREDENTIALS, FLEET
 
 log = logging.getLogger(__name__)
 
@@ -217,8 +219,15 @@ class Stack:
         env: dict[str, str] | None = None,
         listen: str | None = None,
         scale: Scale | None = None,
+        auth_agents: list[str] | None = None,
     ) -> None:
         self.settings = settings
+        # Not None: the router asks every client for a user and password, with per-agent
+        # rules (shared/zenoh_auth.py); credentials are made for these agents.
+        self.auth_agents = auth_agents
+        self.auth_dir: str | None = None
+        self._auth_tmp: tempfile.TemporaryDirectory | None = None
+        self.credentials: dict[str, str] = {}
         self.scale = scale or Scale()
         self.data_dir = data_dir
         self.env = dict(env or {})  # extra HIVEMAP_* variables for every service
@@ -259,16 +268,39 @@ class Stack:
                     "zenoh": s.zenoh.model_copy(update={"connect": [endpoint]}),
                     "api_token": SecretStr(api_token(s, self.data_dir))}
         )  # fmt: skip
+        if self.auth_agents is not None:
+            self._make_credentials()
         for spec in service_plan(self.settings, self.scale):
             if spec.name == "redis" or (spec.name == "api" and not with_api):
                 continue
             argv = _hivemap_exe() + spec.argv[1:]
             env = {**os.environ, **self.env, **spec.env}
+            if self.auth_dir is not None:
+                if spec.name == "router":
+                    argv += ["--auth", self.auth_dir]
+                env.update(self.zenoh_identity(f"svc-{spec.argv[1]}"))
             self._spawn(spec.name, argv, env, supervised=True)
             if spec.name == "router":
                 _wait_port(host, port, 15.0)
         if with_api:
             _wait_port(self.settings.api_host, self.settings.api_port, 30.0)
+
+    def _make_credentials(self) -> None:
+        from shared.zenoh_auth import ensure_users
+
+        if self.data_dir is not None:
+            self.auth_dir = str(Path(self.data_dir) / "zenoh")
+        else:
+            self._auth_tmp = tempfile.TemporaryDirectory(prefix="hivemap-zenoh-")
+            self.auth_dir = self._auth_tmp.name
+        self.credentials = ensure_users(self.auth_dir, list(self.auth_agents or []))
+
+    def zenoh_identity(self, user: str) -> dict[str, str]:
+        """The environment that makes a hivemap process log in to the router as ``user``
+        (nothing when the router asks for no credentials)."""
+        if not self.credentials or user not in self.credentials:
+            return {}
+        return {"HIVEMAP_ZENOH__USER": user, "HIVEMAP_ZENOH__PASSWORD": self.credentials[user]}
 
     def _lock_data_dir(self) -> None:
         """Two stacks appending to one Redis file would corrupt it."""
@@ -316,6 +348,8 @@ class Stack:
             "HIVEMAP_ZENOH__MODE": "client",
             "HIVEMAP_ZENOH__CONNECT": json.dumps([self.zenoh_endpoint]),
             "HIVEMAP_REDIS_URL": self.settings.redis_url,
+            # With authentication, the simulated fleet's identity unless env names one.
+            **self.zenoh_identity(FLEET),
             **(env or {}),
         }
         pre = (lambda: set_priority(nice)) if nice > 0 else None
@@ -387,6 +421,9 @@ class Stack:
         if self.redis:
             self.redis.stop()
             self.redis = None
+        if self._auth_tmp is not None:
+            self._auth_tmp.cleanup()
+            self._auth_tmp = None
         if self._lock_file is not None:
             self._lock_file.close()
             self._lock_file = None
@@ -495,26 +532,46 @@ def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
     except ValueError as e:
         print(f"hivemap: {e}", file=sys.stderr)
         return 2
-    stack = Stack(settings, data_dir=data_dir, listen=args.listen, scale=scale)
+    agents = [a for a in (args.agents or "").split(",") if a]
+    # Authentication on request (--agents, --auth) or once credentials exist in the data
+    # directory; a router listening beyond loopback must have it.
+    auth = (
+        bool(agents)
+        or args.auth
+        or (data_dir is not None and (Path(data_dir) / "zenoh" / CREDENTIALS).exists())
+    )
+    if not auth and not _loopback_endpoint(args.listen):
+        print("hivemap: refusing to listen beyond loopback without router authentication "
+              "(anyone could publish as any agent): add --auth or --agents A,B,...",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    stack = Stack(settings, data_dir=data_dir, listen=args.listen, scale=scale,
+                  auth_agents=agents if auth else None)  # fmt: skip
     if not _start_or_explain(stack):
         return 2
     _print_urls(stack)
     print(f"data         : {data_dir or 'none kept (--ephemeral)'}", flush=True)
+    if stack.auth_dir is not None:
+        print(f"zenoh auth   : {stack.auth_dir} (agents: `hivemap agent --credentials "
+              f"{stack.auth_dir}/AGENT.json`)", flush=True)  # fmt: skip
     return _run_until_signal(stack, stop)
 
 
 def cmd_demo(args: argparse.Namespace, settings: Settings) -> int:
     stop = _stop_on_signal()
-    stack = Stack(settings, data_dir=args.data_dir, listen=args.listen)
+    seqs = args.trajs.split(",")
+    names = [f"agent{i + 1}" for i in range(len(seqs))]
+    # Each simulated agent logs in to the router as itself, with its own rights.
+    stack = Stack(settings, data_dir=args.data_dir, listen=args.listen, auth_agents=names)
     if not _start_or_explain(stack):
         return 2
     _print_urls(stack)
-    for i, seq in enumerate(args.trajs.split(",")):
-        agent = f"agent{i + 1}"
+    for i, (agent, seq) in enumerate(zip(names, seqs, strict=True)):
         stack.add(
             f"sim-{agent}",
             ["sim-agent", "--id", agent, "--traj", seq, "--speed", str(args.speed),
              "--seed", str(i + 1)],
+            env=stack.zenoh_identity(agent),
         )  # fmt: skip
         print(f"agent        : {agent} flying {seq} at {args.speed}x real time")
     sys.stdout.flush()
@@ -527,7 +584,14 @@ def cmd_router(args: argparse.Namespace, settings: Settings) -> int:
     from shared.settings import ZenohSettings
     from shared.transport import zenoh_config
 
-    zs = ZenohSettings(mode="router", connect=[], listen=args.listen)
+    zs = ZenohSettings(mode="router", connect=[], listen=args.listen, auth_dir=args.auth or "")
+    if not args.auth and not all(_loopback_endpoint(e) for e in args.listen):
+        print(
+            "hivemap router: refusing to listen beyond loopback without --auth DIR "
+            "(anyone could publish as any agent); see README, Security",
+            file=sys.stderr,
+        )
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -544,6 +608,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the next `hivemap up` with the same directory serves them again "
                    f"(default ./{DEFAULT_DATA_DIR})")  # fmt: skip
     p.add_argument("--ephemeral", action="store_true", help="keep no data (overrides --data-dir)")
+    p.add_argument("--agents", default=None, metavar="A,B,C",
+                   help="turn on router authentication and make credentials for these "
+                   "agents (DATA_DIR/zenoh/AGENT.json)")  # fmt: skip
+    p.add_argument(
+        "--auth",
+        action="store_true",
+        help="router authentication with the credentials already made",
+    )
     p.add_argument("--mappers", type=int, default=1, help="mapper instances (default 1)")
     p.add_argument("--placerecs", type=int, default=1,
                    help="place-recognition instances sharing the work (default 1)")  # fmt: skip
@@ -559,15 +631,61 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_listen(p)
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("credentials", help="router credentials (user/password per agent)")
+    csub = p.add_subparsers(dest="action", required=True)
+    c = csub.add_parser("add", help="make credentials for agents (and the services)")
+    c.add_argument("agents", nargs="*", help="agent ids")
+    c.add_argument("--data-dir", default=DEFAULT_DATA_DIR)
+    c.add_argument(
+        "--zenohd",
+        default=None,
+        metavar="FILE",
+        help="also write a zenohd config with these users and rules (compose)",
+    )
+    c.add_argument("--dictionary", default="/etc/hivemap/zenoh/credentials",
+                   help="where that zenohd finds the credentials file")  # fmt: skip
+    c.set_defaults(func=cmd_credentials)
+
     p = sub.add_parser("router", help="a Zenoh router in this Python process")
     p.add_argument("--listen", action="append", default=None, help="endpoint, repeatable")
+    p.add_argument("--auth", default=None, metavar="DIR",
+                   help="credentials directory (shared/zenoh_auth.py): users, passwords and "
+                   "per-agent access rules")  # fmt: skip
     p.set_defaults(func=lambda a, s: cmd_router(_default_listen(a), s))
+
+
+def cmd_credentials(args: argparse.Namespace, settings: Settings) -> int:
+    from shared.zenoh_auth import ensure_users, write_router_config
+
+    auth_dir = Path(args.data_dir) / "zenoh"
+    try:
+        ensure_users(auth_dir, args.agents)
+    except ValueError as e:
+        print(f"hivemap credentials: {e}", file=sys.stderr)
+        return 2
+    for a in args.agents:
+        print(f"{a}: {auth_dir / (a + '.json')}  (hivemap agent --id {a} --credentials FILE)")
+    if args.zenohd:
+        path = write_router_config(auth_dir, args.zenohd, args.dictionary)
+        print(f"zenohd config: {path} (reads the credentials at {args.dictionary})")
+    print("a running router learns of new credentials when it restarts", file=sys.stderr)
+    return 0
 
 
 def _add_listen(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", default=DEFAULT_ROUTER,
                    help=f"the Zenoh router's endpoint (default {DEFAULT_ROUTER}, where "
                    "`hivemap agent` looks unless given --server)")  # fmt: skip
+
+
+def _loopback_endpoint(endpoint: str) -> bool:
+    import ipaddress
+
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _default_listen(args: argparse.Namespace) -> argparse.Namespace:

@@ -30,7 +30,17 @@ log = logging.getLogger(__name__)
 
 
 def zenoh_config(zs: ZenohSettings) -> zenoh.Config:
-    conf = zenoh.Config()
+    conf = zenoh.Config.from_file(zs.config_file) if zs.config_file else zenoh.Config()
+    if zs.user:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(zs.user))
+        conf.insert_json5("transport/auth/usrpwd/password",
+                          json.dumps(zs.password.get_secret_value()))  # fmt: skip
+    if zs.mode == "router" and zs.auth_dir:
+        from shared.zenoh_auth import router_config
+
+        rc = router_config(zs.auth_dir)
+        conf.insert_json5("transport/auth/usrpwd", json.dumps(rc["transport"]["auth"]["usrpwd"]))
+        conf.insert_json5("access_control", json.dumps(rc["access_control"]))
     conf.insert_json5("mode", json.dumps(zs.mode))
     if zs.connect:
         conf.insert_json5("connect/endpoints", json.dumps(zs.connect))

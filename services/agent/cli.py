@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from shared.settings import Settings
+from shared.zenoh_auth import with_credentials
 
 
 def cmd_agent(args: argparse.Namespace, settings: Settings) -> int:
@@ -28,6 +29,11 @@ def cmd_agent(args: argparse.Namespace, settings: Settings) -> int:
     if args.server:
         settings = settings.model_copy(update={"zenoh": settings.zenoh.model_copy(
             update={"connect": [args.server]})})  # fmt: skip
+    try:
+        settings = with_credentials(settings, args.credentials)
+    except ValueError as e:
+        print(f"hivemap agent: {e}", file=sys.stderr)
+        return 2
     agent = Agent(settings, args.id, src, use_server=not args.no_server, realtime=args.realtime)
     signal.signal(signal.SIGTERM, lambda *_: agent._stop.set())
     try:
@@ -54,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--server", default="", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--no-server", action="store_true", help="fly alone")
+    p.add_argument("--credentials", default=None, metavar="FILE",
+                   help="this agent's router login (DATA_DIR/zenoh/ID.json from "
+                   "`hivemap credentials add ID`)")  # fmt: skip
     p.add_argument("--realtime", action="store_true", help="pace frames by their timestamps")
     p.add_argument("--out", default="agent_out", help="online poses (TUM) and stats go here")
     p.add_argument("--threads", type=int, default=1, help="OpenCV threads (1: one core)")

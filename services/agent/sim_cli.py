@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import sys
 import threading
 from pathlib import Path
 
@@ -13,10 +14,16 @@ from shared.settings import Settings
 
 def cmd_sim_agent(args: argparse.Namespace, settings: Settings) -> int:
     from shared.trajectory import Trajectory, load_euroc_gt, write_tum
+    from shared.zenoh_auth import with_credentials
 
     from .sim_agent import DriftModel, LandmarkWorld, SimAgent
     from .sim_runner import SimAgentRunner
 
+    try:
+        settings = with_credentials(settings, args.credentials)
+    except ValueError as e:
+        print(f"hivemap sim-agent: {e}", file=sys.stderr)
+        return 2
     if args.count > 1:
         return _run_many(args, settings)
     drift = DriftModel.zero() if args.zero_noise else DriftModel(
@@ -98,6 +105,12 @@ def _run_many(args: argparse.Namespace, settings: Settings) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sim-agent", help="simulated agent: keyframes from a EuRoC trajectory")
     p.add_argument("--id", required=True, help="agent id")
+    p.add_argument(
+        "--credentials",
+        default=None,
+        metavar="FILE",
+        help="router login file (hivemap credentials add)",
+    )
     p.add_argument("--traj", default="MH01", help="MH01..MH05")
     p.add_argument("--speed", type=float, default=1.0, help="real-time factor, 0 = no pacing")
     p.add_argument("--seed", type=int, default=0, help="noise seed")
