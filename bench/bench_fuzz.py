@@ -92,6 +92,12 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=10_000, help="inputs per target")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--name", default="fuzz")
+    ap.add_argument(
+        "--loader-n",
+        type=int,
+        default=None,
+        help="files per loader (default --n; each costs milliseconds of disk and decode)",
+    )
     args = ap.parse_args()
     logging.disable(logging.WARNING)  # every rejection logs a warning
     # OpenCV's PNG reader prints libpng complaints on stderr for every broken image.
@@ -99,12 +105,13 @@ def main() -> int:
     load0 = os.getloadavg()
     with RedisServer() as url:
         rows = fuzz_decoders(args.n, args.seed, url)
-    rows += fuzz_loaders(args.n, args.seed)
+    rows += fuzz_loaders(args.loader_n or args.n, args.seed)
     ok = all(r["failures"] == 0 for r in rows) and all(
         r["counted"] is None or r["counted"] >= r["rejected"] for r in rows
     )
     path = write_report(args.name, {
-        "inputs_per_target": args.n, "seed": args.seed, "load_before": load0,
+        "inputs_per_decoder": args.n, "files_per_loader": args.loader_n or args.n,
+        "seed": args.seed, "load_before": load0,
         "load_after": os.getloadavg(), "all_ok": ok, "targets": rows,
     })  # fmt: skip
     print(table(rows, ["target", "receiver", "inputs", "rejected", "counted", "failures",
