@@ -28,7 +28,7 @@ from pydantic import SecretStr
 from shared.redis_server import RedisServer, free_port
 from shared.runtime import set_priority
 from shared.settings import DEFAULT_ROUTER, Settings
-from shared.zenoh_auth import CREDENTIALS, FLEET
+from shared.zenoh_auth import CREDENTIALS, FLEET, check_agent
 
 log = logging.getLogger(__name__)
 
@@ -132,11 +132,11 @@ def _hivemap_exe() -> list[str]:
 
 
 def tcp_host_port(endpoint: str) -> tuple[str, int]:
-    """``tcp/HOST:PORT`` -> (HOST, PORT); a clear error for anything else."""
+    """``tcp/HOST:PORT`` or ``tls/HOST:PORT`` -> (HOST, PORT); a clear error otherwise."""
     proto, _, addr = endpoint.partition("/")
     host, _, port = addr.rpartition(":")
-    if proto != "tcp" or not host or not port.isdigit():
-        raise ValueError(f"router endpoint {endpoint!r} is not tcp/HOST:PORT")
+    if proto not in ("tcp", "tls") or not host or not port.isdigit():
+        raise ValueError(f"router endpoint {endpoint!r} is not tcp/HOST:PORT or tls/HOST:PORT")
     return host.strip("[]"), int(port)
 
 
@@ -533,6 +533,12 @@ def cmd_up(args: argparse.Namespace, settings: Settings) -> int:
         print(f"hivemap: {e}", file=sys.stderr)
         return 2
     agents = [a for a in (args.agents or "").split(",") if a]
+    try:
+        for a in agents:
+            check_agent(a)
+    except ValueError as e:
+        print(f"hivemap: {e}", file=sys.stderr)
+        return 2
     # Authentication on request (--agents, --auth) or once credentials exist in the data
     # directory; a router listening beyond loopback must have it.
     auth = (
@@ -584,7 +590,9 @@ def cmd_router(args: argparse.Namespace, settings: Settings) -> int:
     from shared.settings import ZenohSettings
     from shared.transport import zenoh_config
 
-    zs = ZenohSettings(mode="router", connect=[], listen=args.listen, auth_dir=args.auth or "")
+    # config_file (HIVEMAP_ZENOH__CONFIG_FILE): TLS certificates for a tls/ listener.
+    zs = ZenohSettings(mode="router", connect=[], listen=args.listen, auth_dir=args.auth or "",
+                       config_file=settings.zenoh.config_file)  # fmt: skip
     if not args.auth and not all(_loopback_endpoint(e) for e in args.listen):
         print(
             "hivemap router: refusing to listen beyond loopback without --auth DIR "
@@ -655,10 +663,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_credentials(args: argparse.Namespace, settings: Settings) -> int:
-    from shared.zenoh_auth import ensure_users, write_router_config
+    from shared.zenoh_auth import check_agent, ensure_users, write_router_config
 
     auth_dir = Path(args.data_dir) / "zenoh"
     try:
+        for a in args.agents:
+            check_agent(a)
         ensure_users(auth_dir, args.agents)
     except ValueError as e:
         print(f"hivemap credentials: {e}", file=sys.stderr)

@@ -32,9 +32,11 @@ class ZenohSettings(BaseModel):
     scouting: bool = False
     # -1: keep retrying to reach the router instead of failing at open().
     connect_timeout_ms: int = -1
-    # This session's identity on a router with authentication (shared/zenoh_auth.py).
+    # This session's identity on a router with authentication (shared/zenoh_auth.py):
+    # user and password, or a credentials file holding both (DATA_DIR/zenoh/USER.json).
     user: str = ""
     password: SecretStr = SecretStr("")
+    credentials: str = ""
     # Router mode: the directory of credentials whose users and rules it enforces.
     auth_dir: str = ""
     # A zenoh JSON5 config file read first (TLS listeners and certificates, README).

@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 
@@ -31,10 +32,13 @@ log = logging.getLogger(__name__)
 
 def zenoh_config(zs: ZenohSettings) -> zenoh.Config:
     conf = zenoh.Config.from_file(zs.config_file) if zs.config_file else zenoh.Config()
-    if zs.user:
-        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(zs.user))
-        conf.insert_json5("transport/auth/usrpwd/password",
-                          json.dumps(zs.password.get_secret_value()))  # fmt: skip
+    user, password = zs.user, zs.password.get_secret_value()
+    if zs.credentials and not user:
+        doc = json.loads(Path(zs.credentials).read_text())
+        user, password = str(doc["user"]), str(doc["password"])
+    if user:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     if zs.mode == "router" and zs.auth_dir:
         from shared.zenoh_auth import router_config
 

@@ -177,3 +177,77 @@ def test_stack_with_authentication_serves_each_agent_as_itself(tmp_path):
         assert store.keyframe_ids("B") == [] and "B" not in store.agents()
     finally:
         stack.stop()
+
+
+def test_zenohd_config_file_is_what_a_router_enforces(tmp_path):
+    """What `hivemap credentials add ... --zenohd FILE` writes for compose's zenohd: a real
+    router loads it and enforces it; the services log in from their credentials files."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    exe = str(Path(sys.executable).with_name("hivemap"))
+    zdir = tmp_path / "zenoh"
+    p = subprocess.run([exe, "credentials", "add", "A", "--data-dir", str(tmp_path), "--zenohd",
+                        str(zdir / "router.json5"), "--dictionary", str(zdir / "credentials")],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    conf = zenoh.Config.from_file(str(zdir / "router.json5"))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    conf.insert_json5("listen/endpoints", json.dumps([ep]))
+    with zenoh.open(conf):
+        with pytest.raises(zenoh.ZError):
+            _client(ep, timeout_ms=1500)
+        zs = ZenohSettings(connect=[ep], credentials=str(zdir / "svc-mapper.json"),
+                           connect_timeout_ms=3000)  # fmt: skip
+        open_session(zs).close()
+    compose = yaml.safe_load((Path(__file__).parents[1] / "docker-compose.yml").read_text())
+    svcs = compose["services"]
+    assert svcs["zenohd"]["command"][:2] == ["-c", "/etc/hivemap/zenoh/router.json5"]
+    for name in ("mapper", "placerec", "optimizer"):
+        cred = svcs[name]["environment"]["HIVEMAP_ZENOH__CREDENTIALS"]
+        assert cred == f"/etc/hivemap/zenoh/svc-{name}.json"
+    bad = subprocess.run([exe, "credentials", "add", "svc-mapper", "--data-dir", str(tmp_path)],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode == 2 and "belongs to a service" in bad.stderr
+
+
+def test_tls_listener_with_the_readme_certificates(tmp_path):
+    """The README's openssl commands and config snippets: a router on tls/ with them, an
+    agent trusting the CA logs in; one without the CA cannot connect."""
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl to make certificates with")
+    d = tmp_path
+    for cmd in (
+        "openssl req -x509 -newkey rsa:2048 -nodes -days 365 -subj /CN=hivemap-ca "
+        "-keyout ca.key -out ca.pem",
+        "openssl req -newkey rsa:2048 -nodes -subj /CN=localhost -keyout router.key "
+        "-out router.csr",
+        "openssl x509 -req -in router.csr -CA ca.pem -CAkey ca.key -CAcreateserial -days 365 "
+        "-extfile san.ext -out router.pem",
+    ):
+        (d / "san.ext").write_text("subjectAltName=DNS:localhost\n")
+        subprocess.run(cmd.split(), cwd=d, check=True, capture_output=True, timeout=60)
+    (d / "router-tls.json5").write_text(json.dumps({"transport": {"link": {"tls": {
+        "listen_private_key": str(d / "router.key"),
+        "listen_certificate": str(d / "router.pem")}}}}))  # fmt: skip
+    (d / "agent-tls.json5").write_text(json.dumps({"transport": {"link": {"tls": {
+        "root_ca_certificate": str(d / "ca.pem")}}}}))  # fmt: skip
+    creds = ensure_users(d / "zenoh", ["A"])
+    port = free_port()
+    zs = ZenohSettings(mode="router", connect=[], listen=[f"tls/127.0.0.1:{port}"],
+                       auth_dir=str(d / "zenoh"),
+                       config_file=str(d / "router-tls.json5"))  # fmt: skip
+    ep = f"tls/localhost:{port}"
+    with zenoh.open(zenoh_config(zs)):
+        ok = ZenohSettings(connect=[ep], user="A", password=creds["A"], connect_timeout_ms=5000,
+                           config_file=str(d / "agent-tls.json5"))  # fmt: skip
+        open_session(ok).close()
+        with pytest.raises(zenoh.ZError):  # does not trust the router's certificate
+            open_session(ZenohSettings(connect=[ep], user="A", password=creds["A"],
+                                       connect_timeout_ms=1500))  # fmt: skip
