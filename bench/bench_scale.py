@@ -108,14 +108,99 @@ def run(scale: Scale, agents: int, frames: str, speed: float) -> list[dict]:
         stack.stop()
 
 
+def run_teams(scale: Scale, per_team: int, frames: str, speed: float) -> dict:
+    """Three teams of ``per_team`` simulated agents, each team in a world of its own
+    (seeds 0, 1, 2) flying MH01-03 over the same hall: every team should end in one map.
+    Per mapper instance: CPU from the agents' start, keyframes it stored, maps owned at
+    the end, takeovers and hand-overs."""
+    from services.team_cli import collect
+    from shared.evaluation import evaluate_team
+
+    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port(),
+                        placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
+                        log_level="WARNING")  # fmt: skip
+    stack = Stack(settings, env={"HIVEMAP_LOG_LEVEL": "WARNING"}, scale=scale)
+    stack.start()
+    try:
+        time.sleep(3)
+        cpu0 = {c.name: cpu_s(c.proc.pid) for c in stack.children}
+        for k in range(3):
+            stack.add(f"team{k}", ["sim-agent", "--id", f"t{k}", "--count", str(per_team),
+                                   "--traj", "MH01,MH02,MH03", "--frames", frames,
+                                   "--world-seed", str(k), "--seed", str(10 * k),
+                                   "--speed", str(speed), "--flush-timeout", "60"],
+                      env={"HIVEMAP_LOG_LEVEL": "WARNING"})  # fmt: skip
+        t0 = time.monotonic()
+        for c in [c for c in stack.children if c.name.startswith("team")]:
+            c.proc.wait(1800)
+        flight_s = time.monotonic() - t0
+        plan = {p.name: p for p in service_plan(stack.settings, scale)}
+        r = connect(stack.settings.redis_url)
+        store = Store(r)
+        # Settle: merges and optimizations finish (the map count and keyframes stop moving).
+        last, still = None, 0
+        while still < 3:
+            time.sleep(3)
+            now = (tuple(store.maps()), sum(len(store.keyframe_ids(a)) for a in store.agents()))
+            still = still + 1 if now == last else 0
+            last = now
+        maps = store.maps()
+        kfs = {m: (store.map_info(m) or {}).get("n_kf", 0) for m in maps}
+        evals = evaluate_team(collect(stack.settings.redis_url))
+        r.close()
+        mappers = []
+        for c in stack.children:
+            if not c.name.startswith("mapper"):
+                continue
+            port = plan[c.name].http_port
+            mappers.append({
+                "instance": c.name, "cpu_s": cpu_s(c.proc.pid) - cpu0[c.name],
+                "keyframes": metric(port, "hivemap_stored_total",
+                                    {"service": "mapper", "kind": "keyframe"}),
+                "maps_owned": metric(port, "hivemap_mapper_maps_owned", {}),
+                "takeovers": metric(port, "hivemap_mapper_takeovers", {}),
+                "handovers": metric(port, "hivemap_mapper_handovers", {}),
+            })  # fmt: skip
+        for m in mappers:
+            m["cpu_ms_per_kf"] = 1e3 * m["cpu_s"] / max(m["keyframes"], 1)
+        return {
+            "scale": f"m{scale.mappers}p{scale.placerecs}", "flight_s": flight_s,
+            "maps": len(maps), "map_keyframes": kfs,
+            "teams": [{"map": e.map_id, "agents": len(e.agents),
+                       "joint_ate_mm": 1e3 * e.joint_ate_m} for e in evals],
+            "mappers": mappers,
+        }  # fmt: skip
+    finally:
+        stack.stop()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--agents", type=int, default=6)
     ap.add_argument("--frames", default="900:1500")
     ap.add_argument("--speed", type=float, default=2.0)
     ap.add_argument("--name", default="scale_pools")
+    ap.add_argument(
+        "--teams",
+        action="store_true",
+        help="three teams of --per-team agents, 1 mapper vs 3 mappers + 2 placerecs",
+    )
+    ap.add_argument("--per-team", type=int, default=4)
     args = ap.parse_args()
     load0 = os.getloadavg()
+    if args.teams:
+        runs = [run_teams(sc, args.per_team, args.frames, args.speed)
+                for sc in (Scale(1, 1, 1), Scale(3, 2, 1))]  # fmt: skip
+        rows = [{"scale": r["scale"], **m} for r in runs for m in r["mappers"]]
+        print(table(rows, ["scale", "instance", "cpu_s", "keyframes", "cpu_ms_per_kf",
+                           "maps_owned", "takeovers", "handovers"]))  # fmt: skip
+        for r in runs:
+            print(r["scale"], "maps", r["maps"], r["map_keyframes"], "teams", r["teams"])
+        doc = {"args": vars(args), "loadavg_before": load0, "loadavg_after": os.getloadavg(),
+               "runs": runs}  # fmt: skip
+        path = write_report(args.name, doc)
+        print(f"wrote {path}")
+        return 0
     rows = []
     for scale in (Scale(1, 1, 1), Scale(1, 2, 2)):
         rows += run(scale, args.agents, args.frames, args.speed)

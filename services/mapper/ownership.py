@@ -19,13 +19,14 @@ on the network. An agent's owner is known locally for the agents of local maps; 
 others it is read from Redis (the agent's map, then that map's lease) and cached for
 half a second.
 
-New agents go to the least-loaded mapper: each mapper publishes its load (agents and
-maps it serves) in ``hm:mappers`` every renewal, and a mapper takes a new agent only
-when it is the least loaded of the live ones (fewest agents, then fewest maps, then
-lowest id); two that both think so race for the new map's lease, and the loser drops
-the batch (the agent resends it to the winner). The same rule takes over the maps of
-a mapper that died: a map whose lease expired is taken by the least-loaded live mapper,
-one map per renewal round, and rebuilt from Redis.
+New agents go to the least-loaded mapper: each mapper publishes that it lives in
+``hm:mappers`` every renewal, and the first mapper to see a new agent's batch assigns
+it, in one Lua script, to the live mapper with the fewest agents assigned so far
+(``hm:assigned``; ties to the lowest id) -- atomic, so a burst of new agents spreads
+over the mappers instead of all going to whoever looked least loaded a second ago; the
+others read the same assignment. The maps of a mapper that died are taken by the
+least-loaded live mapper (fewest agents it serves, then maps), one map per renewal
+round, and rebuilt from Redis.
 
 Merges across owners: when a match names a map this mapper owns and one another owns,
 the owner of the map with the smaller id asks for the other (``hm:handover:{m}``); its
@@ -36,6 +37,8 @@ Keys (beside ``shared/leases.py``'s ``hm:lease:{m}``, ``hm:fence:{m}``):
 
     hm:mappers        HASH  mapper id -> JSON {t: unix ms, agents, maps}: live mappers
                             and their load, rewritten every renewal
+    hm:assign         HASH  new agent -> the mapper it was assigned to
+    hm:assigned       HASH  mapper id -> agents assigned to it
     hm:handover:{m}   STR   the mapper id that asked for map m; expires after 10 leases
 """
 
@@ -51,6 +54,29 @@ from shared.store import Store
 log = logging.getLogger(__name__)
 
 K_MAPPERS = "hm:mappers"
+K_ASSIGN = "hm:assign"
+K_ASSIGNED = "hm:assigned"
+
+# KEYS: assign, assigned, mappers. ARGV: agent, now ms, live window ms.
+_ASSIGN = """
+local got = redis.call('HGET', KEYS[1], ARGV[1])
+if got then return got end
+local best, best_n = nil, nil
+local all = redis.call('HGETALL', KEYS[3])
+for i = 1, #all, 2 do
+  local d = cjson.decode(all[i + 1])
+  if tonumber(ARGV[2]) - d.t <= tonumber(ARGV[3]) then
+    local n = tonumber(redis.call('HGET', KEYS[2], all[i]) or '0')
+    if best == nil or n < best_n or (n == best_n and all[i] < best) then
+      best, best_n = all[i], n
+    end
+  end
+end
+if best == nil then return false end
+redis.call('HSET', KEYS[1], ARGV[1], best)
+redis.call('HINCRBY', KEYS[2], best, 1)
+return best
+"""
 
 
 def k_handover(map_id: str) -> str:
@@ -63,6 +89,7 @@ class Ownership:
         self.id = instance
         self.lease_s = lease_s
         self.leases = Leases(self.r, instance, lease_s)
+        self._assign = self.r.register_script(_ASSIGN)
         self.handovers = 0  # maps given to another mapper
         self.takeovers = 0  # maps taken whose owner had stopped renewing
 
@@ -86,6 +113,12 @@ class Ownership:
         live = self.live()
         live.setdefault(self.id, {"agents": 0, "maps": 0})
         return min(live, key=lambda m: (live[m]["agents"], live[m]["maps"], m))
+
+    def assign(self, agent: str) -> str | None:
+        """The mapper a new agent goes to (assigned once, by whoever asks first)."""
+        now_ms, live_ms = int(time.time() * 1000), int(1000 * self.lease_s)
+        got = self._assign(keys=[K_ASSIGN, K_ASSIGNED, K_MAPPERS], args=[agent, now_ms, live_ms])
+        return None if got is None else (got.decode() if isinstance(got, bytes) else got)
 
     def is_least_loaded(self) -> bool:
         return self.least_loaded() == self.id

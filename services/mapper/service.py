@@ -582,7 +582,7 @@ class MapperService:
             return got[0]
         st = self.store.agent_state(agent)
         if st is None:
-            ours = self.own.is_least_loaded()
+            ours = self.own.assign(agent) in (self.own.id, None)
         else:
             ours = self._may_own(st.map_id) and self.take_map(st.map_id)
         self._routes[agent] = (ours, now + 0.5)
@@ -655,8 +655,11 @@ class MapperService:
                         own.handover_done(m)
                         self.collab.on_match(match)
                 for m in self.store.maps():
-                    if not self.registry.is_local(m) and own.owner(m) is None \
-                            and own.is_least_loaded() and self.take_map(m):  # fmt: skip
+                    if self.registry.is_local(m) or own.owner(m) is not None:
+                        continue
+                    if own.handover_asked(m) not in (None, own.id):
+                        continue  # released for another mapper's merge: it takes it
+                    if own.is_least_loaded() and self.take_map(m):
                         own.takeovers += 1
                         break  # one per round: the next goes to whoever is least loaded
                 self._heartbeat()
