@@ -122,6 +122,15 @@ def test_compose_manifests_and_hivemap_up_list_the_same_services(clean_env):
     assert replica[replica.index("--replicaof") + 1 :][:2] == ["redis", "6379"]
     services = _by_kind("Service")
     assert {"zenohd", "redis", "redis-replica", "api"} <= set(services)
+    # The router's logins reach the router and every service that logs in, as in compose.
+    zenohd = deps["zenohd"]["spec"]["template"]["spec"]
+    assert _compose_services()["zenohd"]["command"][:2] == zenohd["containers"][0]["args"][:2]
+    for name in ("zenohd", *SCALABLE):
+        pod = deps[name]["spec"]["template"]["spec"]
+        assert pod["volumes"] == [{"name": "zenoh-logins",
+                                   "secret": {"secretName": "hivemap-zenoh"}}], name  # fmt: skip
+        mount = pod["containers"][0]["volumeMounts"][0]
+        assert mount["mountPath"] == "/etc/hivemap/zenoh" and mount["readOnly"], name
     assert _compose_services()["zenohd"]["image"] == \
         deps["zenohd"]["spec"]["template"]["spec"]["containers"][0]["image"]  # fmt: skip
     # The pools run several replicas.
