@@ -158,7 +158,7 @@ def _gt_at(gt: Trajectory, stamp: int) -> np.ndarray:
 
 
 def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
-         camera: str = "") -> dict:  # fmt: skip
+         camera: str = "", mappers: int = 1) -> dict:  # fmt: skip
     sources = []
     for i, (seq, seed) in enumerate(zip(seqs, seeds, strict=True)):
         q = (
@@ -176,8 +176,10 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
 
     # Agents fly on their own computers; here they share the server's two cores, so
     # they run at lower priority and the server gets the CPU it would have alone.
+    from services.launcher import Scale
+
     doc = run_team(Settings(), sources, out, feedback=feedback, on_stack=attach,
-                   settle_timeout=180, agent_nice=10)  # fmt: skip
+                   settle_timeout=180, agent_nice=10, scale=Scale(mappers=mappers))  # fmt: skip
     rec: Recorder = holder["rec"]
     rec.close()
     seq_of = {name: seq for name, seq, _ in sources}
@@ -233,6 +235,7 @@ def main() -> int:
     ap.add_argument("--only", default="team3,team5,seeds,feedback")
     ap.add_argument("--frames", default="")
     ap.add_argument("--name", default="team")
+    ap.add_argument("--mappers", type=int, default=1, help="mapper instances (map leases)")
     ap.add_argument("--camera", default="", help="synthetic: options, e.g. blur=0.5&exposure=1")
     ap.add_argument("--drop", type=float, default=0.0, help="loss on the agents' messages")
     ap.add_argument("--delay", type=float, default=0.0, help="delay (s) on the agents' messages")
@@ -246,7 +249,9 @@ def main() -> int:
     runs: dict = {}
     only = args.only.split(",")
     if "team3" in only:
-        runs["team3"] = team(["MH01", "MH02", "MH03"], [0, 0, 0], args.frames, camera=cam)
+        runs["team3"] = team(
+            ["MH01", "MH02", "MH03"], [0, 0, 0], args.frames, camera=cam, mappers=args.mappers
+        )
     if "team5" in only:
         runs["team5"] = team(["MH01", "MH02", "MH03", "MH04", "MH05"], [0] * 5, args.frames,
                              camera=cam)  # fmt: skip

@@ -77,13 +77,17 @@ def _wait_agents(stack, procs: list, t0: float) -> None:
 def wait_settled(stack, timeout: float, quiet_s: float = 8.0, on_check=None) -> None:
     """Until every optimization the mapper asked for came back and nothing new was
     asked for ``quiet_s``."""
-    mp, op = stack.settings.mapper_metrics_port, stack.settings.optimizer_metrics_port
+    from .launcher import service_plan
+
+    plan = service_plan(stack.settings, stack.scale)
+    mps = [s.http_port for s in plan if s.name.startswith("mapper")]
+    ops = [s.http_port for s in plan if s.name.startswith("optimizer")]
     deadline = time.monotonic() + timeout
     last, since = None, time.monotonic()
     while time.monotonic() < deadline:
-        req = _metric(mp, "hivemap_optimize_requests_total")
-        done = _metric(mp, "hivemap_corrections_applied_total") + _metric(
-            op, "hivemap_optimizations_superseded_total"
+        req = sum(_metric(mp, "hivemap_optimize_requests_total") for mp in mps)
+        done = sum(_metric(mp, "hivemap_corrections_applied_total") for mp in mps) + sum(
+            _metric(op, "hivemap_optimizations_superseded_total") for op in ops
         )
         state = (req, done)
         if state != last:
@@ -122,6 +126,7 @@ def run_team(
     on_stack=None,
     keep: bool = False,
     agent_nice: int = 0,
+    scale=None,
 ) -> dict:
     """The whole stack plus one ``hivemap agent`` per source; waits for the agents and
     for the optimizer to settle, then evaluates. Returns the evaluation, each agent's
@@ -139,7 +144,7 @@ def run_team(
         "optimizer_metrics_port": free_port()})  # fmt: skip
     # Without feedback the mapper sends agents no map chunks (CCM-SLAM Table 7's baseline).
     env = {} if feedback else {"HIVEMAP_MAPPER__FEEDBACK_K": "0"}
-    stack = Stack(settings, data_dir=data_dir, env=env)
+    stack = Stack(settings, data_dir=data_dir, env=env, scale=scale)
     stack.start(with_api=with_api)
     t0 = time.monotonic()
     procs = []
