@@ -160,6 +160,6 @@ def test_every_panel_returns_data(tmp_path):
             states = prom.api("query", query="hivemap_agent_state")["result"]
             assert sorted(r["metric"]["agent"] for r in states) == ["agent-0", "agent-1"]
             fps = prom.api("query", query="max_over_time(hivemap_agent_fps[1m])")["result"]
-            assert all(float(r["value"][1]) > 5 for r in fps), fps
+            assert len(fps) == 2 and all(float(r["value"][1]) > 5 for r in fps), fps
         finally:
             prom.stop()
