@@ -75,7 +75,7 @@ def add_sim_agents(
     agent_prefix: str = "agent",
 ) -> None:
     stack.add(
-        "sim-agents",
+        f"sim-agents-{agent_prefix}",
         ["sim-agent", "--id", agent_prefix, "--count", str(n_agents), "--traj", trajs,
          "--frames", frames, "--speed", str(speed), "--flush-timeout", "20"],
         env={"HIVEMAP_LOG_LEVEL": "WARNING"},

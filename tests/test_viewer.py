@@ -36,13 +36,17 @@ def test_viewer_shows_the_team(tmp_path):
         with viewer_page(stack.viewer_url) as page:
             # The page is up before any agent: it must pick them up as they come.
             page.wait_for_function("window.hivemapViewer && window.hivemapViewer.frames > 5")
-            # 30 s of flight at 2x: still flying after the merge on a loaded machine.
-            add_sim_agents(stack, 2, frames="900:2100")
+            # Two agents on the same part of MH01, the second 15 s (of flight) behind the
+            # first: where it flies, the first has mapped, so their maps merge soon; both
+            # are seen apart. 30 s of flight at 2x: still flying after the merge.
+            add_sim_agents(stack, 1, frames="900:2100", agent_prefix="red")
+            add_sim_agents(stack, 1, frames="1200:2400", agent_prefix="blue")
             wait_for(
                 lambda: len(get_json(f"{api}/agents", token=stack.api_token)) == 2,
                 60,
                 "two agents in the API",
             )
+            # Both drawn means both in the shown map: it merged.
             page.wait_for_function(
                 "Object.keys(window.hivemapViewer.drawn.poses).length == 2"
                 " && window.hivemapViewer.drawn.points > 500", timeout=60_000,
@@ -50,7 +54,7 @@ def test_viewer_shows_the_team(tmp_path):
             a = _drawn(page)
             time.sleep(2.0)
             b = _drawn(page)
-            assert set(a["poses"]) == set(b["poses"]) == {"agent-0", "agent-1"}
+            assert set(a["poses"]) == set(b["poses"]) == {"red-0", "blue-0"}
             for agent in a["poses"]:
                 pa, pb = a["poses"][agent], b["poses"][agent]
                 moved = max(abs(x - y) for x, y in zip(pa["world"], pb["world"], strict=True))
@@ -58,16 +62,19 @@ def test_viewer_shows_the_team(tmp_path):
                 assert pb["status"] == "tracking"
             fps = viewer_fps(page, 3.0)
             assert fps > 20, f"viewer draws {fps:.1f} fps"
-            # Agent status in the side table, the scale bar's length label on the canvas
-            # (checked through what the page says it drew), the points count in the header.
+            # Agent status in the side table, the scale bar (what the page says it drew: a
+            # round length, 70-400 px long), the points count in the header.
+            bar = b["scaleBar"]
+            assert bar["text"].split()[1] in ("mm", "cm", "m") and 70 <= bar["px"] <= 400, bar
             table = page.inner_text("#agents tbody")
-            assert "agent-0" in table and "tracking" in table
+            assert "red-0" in table and "blue-0" in table and "tracking" in table
             assert "points" in page.inner_text("#totals")
-            # Wait for the merge the two overlapping agents make, so the shot shows one map.
+            # The merge is in the event list as it happened, one map is left.
             page.wait_for_function(
-                "document.querySelectorAll('#maps button').length == 1", timeout=60_000
+                "document.querySelector('#events').innerText.includes('merge')", timeout=10_000
             )
-            time.sleep(1.0)
+            assert len(page.query_selector_all("#maps button")) == 1
+            time.sleep(2.0)  # the orbit turns a little further and the poses move on
             SHOT.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SHOT))
             events = page.inner_text("#events")

@@ -54,8 +54,10 @@ def up_direction(kf_pos: np.ndarray, R: np.ndarray, pts: np.ndarray | None = Non
     return up if up @ down <= 0 else -up
 
 
-def state(store: Store) -> dict:
-    """Maps, agents (status, live pose, counts), keyframe trajectories and loop edges."""
+def state(store: Store, seen_live: list[str] | tuple[str, ...] = ()) -> dict:
+    """Maps, agents (status, live pose, counts), keyframe trajectories and loop edges.
+    ``seen_live``: maps the caller last saw live; one merged since is listed once more,
+    with its ``merged_into`` (the store lists live maps only), so the merge is seen."""
     now_ns = time.time_ns()
     agents_out, trajs = [], {}
     kf_pos: dict[tuple[str, int], list[float]] = {}
@@ -81,7 +83,7 @@ def state(store: Store) -> dict:
         agents_out.append(out)
     by_index = store.agents_by_index()
     maps, loops = [], {}
-    for m in store.maps():
+    for m in sorted(set(store.maps()) | set(seen_live)):
         info = store.map_info(m)
         if info is None:
             continue

@@ -65,7 +65,8 @@ async def _state(ws: WebSocket) -> None:
     sent_n: dict[str, int] = {}
     sent_t: dict[str, float] = {}
     while True:
-        cur = await asyncio.to_thread(feed.state, store)
+        seen = [m["map_id"] for m in prev["maps"] if not m["merged_into"]] if prev else []
+        cur = await asyncio.to_thread(feed.state, store, seen)
         await _send(ws, cur)
         for e in feed.diff_events(prev, cur):
             await _send(ws, e)

@@ -415,7 +415,10 @@ function drawTop(sc, bb, now) {
   cx.strokeStyle = "#e6edf3"; cx.lineWidth = 2 * d;
   cx.beginPath(); cx.moveTo(bx, by - 5 * d); cx.lineTo(bx, by); cx.lineTo(bx + px, by); cx.lineTo(bx + px, by - 5 * d); cx.stroke();
   cx.fillStyle = "#e6edf3"; cx.font = `${12 * d}px system-ui, sans-serif`;
-  cx.fillText(fmtLen(+L.toPrecision(3)), bx + px / 2 - 14 * d, by - 8 * d);
+  const scaleText = fmtLen(+L.toPrecision(3));
+  cx.fillText(scaleText, bx + px / 2 - 14 * d, by - 8 * d);
+  stats.drawn.scaleBar = { text: scaleText, px: px / d };
+  stats.drawn.grid_m = step;
   const ax = W - 60 * d, ay = H - 24 * d, al = 34 * d;
   cx.lineWidth = 2 * d;
   cx.strokeStyle = "#ff5d5d"; cx.beginPath(); cx.moveTo(ax, ay); cx.lineTo(ax + al, ay); cx.stroke();
