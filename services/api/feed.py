@@ -46,7 +46,9 @@ def up_direction(kf_pos: np.ndarray, R: np.ndarray, pts: np.ndarray | None = Non
     up = -down / max(np.linalg.norm(down), 1e-9)
     if len(kf_pos) >= 10:
         w, v = np.linalg.eigh(np.cov(np.asarray(kf_pos, float).T))
-        if w[0] < 0.35 * w[1]:
+        # Only a spread that is flat: a take-off or a straight run is a line, whose
+        # least-varying direction is as likely level as vertical.
+        if w[0] < 0.35 * w[1] and w[1] > 0.1 * w[2]:
             up = v[:, 0]
     if pts is not None and len(pts) >= 50 and len(kf_pos):
         below = np.median(pts @ up) < np.median(np.asarray(kf_pos) @ up)
