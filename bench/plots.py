@@ -72,14 +72,15 @@ def trajectories(data: dict, path: Path, title: str) -> Path:
             err = np.sqrt(((e - g) ** 2).sum(1).mean())
             ax.plot(g[:, 0], g[:, 1], "--", color=c, lw=1, alpha=0.6)
             ax.plot(e[:, 0], e[:, 1], "-", color=c, lw=1.6,
-                    label=f"{agent} ({d['seq']}) ATE {err * 1000:.1f} mm")  # fmt: skip
+                    label=f"{agent} ({d['seq']}) {err * 1000:.1f} mm")  # fmt: skip
         ax.set_title(f"{title}: {map_id}")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="best", title="solid: server map, dashed: ground truth",
-                  title_fontsize=7)  # fmt: skip
+        ax.legend(fontsize=7, loc="best", title_fontsize=7,
+                  title="solid: server map, dashed: ground truth\n"
+                        "(one similarity per map; RMS error per agent)")  # fmt: skip
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -119,15 +120,27 @@ def latency_vs_team(rows: list[dict], path: Path, title: str = "Keyframe latency
 
 
 def traffic_over_time(series: dict[str, list], path: Path, title: str = "Mapper traffic") -> Path:
-    """``series``: label -> [[t_s, bytes_in_per_s, bytes_out_per_s], ...]."""
+    """``series``: label -> [[t_s, in, out to agents, out to services], ...] in bytes per
+    second (older reports: [t_s, in, out])."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for i, (label, s) in enumerate(sorted(series.items())):
         a = np.asarray(s, float)
         if len(a) == 0:
             continue
         c = f"C{i}"
-        ax.plot(a[:, 0], a[:, 1] / 1e3, "-", color=c, label=f"{label}: in (agents -> server)")
-        ax.plot(a[:, 0], a[:, 2] / 1e3, ":", color=c, label=f"{label}: out (server -> agents)")
+        ax.plot(a[:, 0], a[:, 1] / 1e3, "-", color=c, label=f"{label}: agents -> mapper")
+        if a.shape[1] >= 4:
+            ax.plot(
+                a[:, 0],
+                a[:, 2] / 1e3,
+                ":",
+                color=c,
+                label=f"{label}: mapper -> agents (acks, map chunks)",
+            )
+            ax.plot(a[:, 0], a[:, 3] / 1e3, "--", color=c, alpha=0.5,
+                    label=f"{label}: mapper -> placerec, optimizer")  # fmt: skip
+        else:
+            ax.plot(a[:, 0], a[:, 2] / 1e3, ":", color=c, label=f"{label}: mapper out")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("kB/s")
     ax.set_ylim(bottom=0)
@@ -154,17 +167,18 @@ class TrafficSampler:
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
-    def _totals(self) -> tuple[float, float]:
+    def _totals(self) -> list[float]:
+        """Bytes in, out to agents (``hivemap/agent/*/down/*``), out to services."""
         import urllib.request
 
         with urllib.request.urlopen(self.url, timeout=2) as r:
             text = r.read().decode()
-        tot = {"in": 0.0, "out": 0.0}
+        tot = [0.0, 0.0, 0.0]
         for ln in text.splitlines():
             if ln.startswith("hivemap_bytes_total{") and f'service="{self.service}"' in ln:
-                d = "in" if 'direction="in"' in ln else "out"
-                tot[d] += float(ln.rsplit(" ", 1)[1])
-        return tot["in"], tot["out"]
+                i = 0 if 'direction="in"' in ln else 1 if "/down/" in ln else 2
+                tot[i] += float(ln.rsplit(" ", 1)[1])
+        return tot
 
     def _run(self) -> None:
         import time
@@ -172,14 +186,14 @@ class TrafficSampler:
         prev = None
         while not self._stop.wait(self.every):
             try:
-                now, (bi, bo) = time.monotonic(), self._totals()
+                now, tot = time.monotonic(), self._totals()
             except OSError:
                 continue
             if prev is not None:
                 dt = now - prev[0]
-                self.series.append([round(now - self._t0, 2), round((bi - prev[1]) / dt),
-                                    round((bo - prev[2]) / dt)])  # fmt: skip
-            prev = (now, bi, bo)
+                rates = [round((a - b) / dt) for a, b in zip(tot, prev[1], strict=True)]
+                self.series.append([round(now - self._t0, 2), *rates])
+            prev = (now, tot)
 
     def stop(self) -> list[list[float]]:
         self._stop.set()
