@@ -461,17 +461,22 @@ class Store:
         """Agent index (the high bits of its gids, ``shared.ids``) -> agent id."""
         return {int(v): k.decode() for k, v in self.r.hgetall(_AGENT_INDEX).items()}
 
-    def point_sample(self, agent: str, cap: int) -> np.ndarray:
-        """(n, 3) map-frame positions of at most ``cap`` of the agent's map points: all of
-        them up to ``cap``, else an even selection in id order (the same points from one
-        call to the next, so a viewer does not flicker)."""
+    def point_sample(self, agent: str, cap: int) -> tuple[np.ndarray, int]:
+        """((n, 3) map-frame positions, how many there are) of at most ``cap`` of the
+        agent's map points: all of them up to ``cap``, else an even selection in id order
+        (the same points from one call to the next, so a viewer does not flicker). Past
+        ``cap`` only the chosen records are read (ids first): a viewer's refresh must not
+        pull every point of a 16-agent team out of Redis."""
         if cap <= 0:
-            return np.zeros((0, 3))
-        _, rec = self.map_point_records(agent)
-        pos = rec["pos"]
-        if len(pos) > cap:
-            pos = pos[np.linspace(0, len(pos) - 1, cap).round().astype(np.int64)]
-        return np.asarray(pos, float)
+            return np.zeros((0, 3)), int(self.r.hlen(_k_mps(agent)))
+        ids = np.sort(np.array([int(x) for x in self.r.hkeys(_k_mps(agent))], np.int64))
+        n_total = len(ids)
+        if n_total > cap:
+            ids = ids[np.linspace(0, n_total - 1, cap).round().astype(np.int64)]
+        raw = self.r.hmget(_k_mps(agent), [int(i) for i in ids]) if len(ids) else []
+        # A point removed between the two reads is simply left out.
+        rec = np.frombuffer(b"".join(b for b in raw if b is not None), MP_DTYPE)
+        return np.asarray(rec["pos"], float).reshape(-1, 3), n_total
 
     def keyframe_poses(self, agent: str) -> tuple[np.ndarray, np.ndarray]:
         """(ids, (n, 4, 4) T_m_kf) of the agent's stored keyframes: only the pose field of

@@ -115,8 +115,8 @@ def points(store: Store, map_id: str, cap: int = POINTS_CAP) -> dict:
     left = cap
     for k, a in enumerate(agents):
         share = left // (len(agents) - k)
-        p = store.point_sample(a, share)
-        n_total += int((store.agent_info(a) or {}).get("n_mp", 0))
+        p, n = store.point_sample(a, share)
+        n_total += n
         left -= len(p)
         parts.append(p)
     pts = np.concatenate(parts) if parts else np.zeros((0, 3))

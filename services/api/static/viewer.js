@@ -496,20 +496,31 @@ function emptyNote(s, text) {
 }
 
 // --- frame loop --------------------------------------------------------------------------------
-let fpsT0 = performance.now(), fpsN = 0;
+// At most 30 frames a second: smooth for a map, and half the CPU of the display's 60 (the
+// browser may share a small server's cores). stats.drawMs says how much of a frame's
+// 33 ms the drawing takes: the headroom left.
+const FRAME_MS = 1000 / 30;
+let fpsT0 = performance.now(), fpsN = 0, lastDraw = 0;
+const drawTimes = [];
 function frame(now) {
+  requestAnimationFrame(frame);
+  if (now - lastDraw < FRAME_MS - 2) return;
+  lastDraw = now;
+  const t0 = performance.now();
   top2d.resize(); orbit.resize();
   const sc = scene(), bb = bounds(sc);
   drawTop(sc, bb, now);
   drawOrbit(sc, bb, now);
+  drawTimes.push(performance.now() - t0);
+  if (drawTimes.length > 60) drawTimes.shift();
+  stats.drawMs = drawTimes.slice().sort((a, b) => a - b)[Math.floor(drawTimes.length / 2)];
   stats.frames++; fpsN++;
   if (now - fpsT0 >= 1000) {
     stats.fps = fpsN * 1000 / (now - fpsT0); fpsT0 = now; fpsN = 0;
-    document.getElementById("fps").textContent = `${stats.fps.toFixed(0)} fps`;
+    document.getElementById("fps").textContent = `${stats.fps.toFixed(0)} fps · draw ${stats.drawMs.toFixed(1)} ms`;
     if (S.connected && now - S.lastMsg > 5000) setConn("wait", "no data");
     else if (S.connected) setConn("live", "live");
   }
-  requestAnimationFrame(frame);
 }
 connect();
 requestAnimationFrame(frame);
