@@ -468,12 +468,12 @@ class Store:
         ``cap`` only the chosen records are read (ids first): a viewer's refresh must not
         pull every point of a 16-agent team out of Redis."""
         if cap <= 0:
-            return np.zeros((0, 3)), int(self.r.hlen(_k_mps(agent)))
-        ids = np.sort(np.array([int(x) for x in self.r.hkeys(_k_mps(agent))], np.int64))
+            return np.zeros((0, 3)), int(self.r.hlen(_k("mp", agent)))
+        ids = np.sort(np.array([int(x) for x in self.r.hkeys(_k("mp", agent))], np.int64))
         n_total = len(ids)
         if n_total > cap:
             ids = ids[np.linspace(0, n_total - 1, cap).round().astype(np.int64)]
-        raw = self.r.hmget(_k_mps(agent), [int(i) for i in ids]) if len(ids) else []
+        raw = self.r.hmget(_k("mp", agent), [int(i) for i in ids]) if len(ids) else []
         # A point removed between the two reads is simply left out.
         rec = np.frombuffer(b"".join(b for b in raw if b is not None), MP_DTYPE)
         return np.asarray(rec["pos"], float).reshape(-1, 3), n_total
