@@ -78,8 +78,8 @@ class CommSettings(BaseModel):
     # loaded server; the target is the bound on the latency of what it accepts).
     window: int = Field(8, ge=1)
     window_min: int = Field(2, ge=1)
-    window_max: int = Field(64, ge=1)
-    ack_target_s: float = Field(1.0, gt=0)
+    window_max: int = Field(32, ge=1)
+    ack_target_s: float = Field(0.5, gt=0)
     pose_rate_hz: float = Field(10.0, gt=0)
     # A map point moved by local BA is sent again when it moved by more than this share
     # of its distance from its reference keyframe.
@@ -170,6 +170,10 @@ class MapperSettings(BaseModel):
     # the lease time: a dead mapper's maps are taken over within about twice it.
     instance: str = ""
     lease_s: float = Field(3.0, gt=0.1)
+    # Overload (services/mapper/overload.py): a keyframe batch that waited longer than
+    # this in the queue is shed (the agent resends it); poses, feedback and background
+    # work are shed before, at 15, 40 and 70 % of it.
+    shed_after_s: float = Field(0.6, gt=0)
 
 
 class PlacerecSettings(BaseModel):

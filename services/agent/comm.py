@@ -18,11 +18,13 @@ agents send 3-7x their data when acks took longer than that). So, as TCP does:
   per ack that came back within ``ack_target_s`` and halves (at most once per round
   trip) on one that did not: a slow server slows its agents' sending, and the backlog
   waits in the agents' buffers (CCM-SLAM §4.5) instead of in the server's queue,
-  which keeps the latency of what the server accepts bounded. Keyframes the server
+  which keeps the latency of what the server accepts bounded. A timeout halves it too
+  (an overloaded mapper sheds batches unacknowledged). Keyframes the server
   holds (waiting for a predecessor) or asks for again are outside the window, so a
   hole can always be filled, and while the server says nothing for a timeout one
-  keyframe probes past a full window. Delay, not loss, shrinks it: random loss on a
-  radio link says nothing about the server's load.
+  keyframe probes past a full window. It never goes below ``window_min``: on a lossy
+  radio link (timeouts without overload) a small window with prompt acks still carries
+  tens of keyframes a second.
 
 The same class serves the real VO agent and the feature-level simulated agent.
 """
@@ -80,8 +82,8 @@ class CommModule:
         backoff_max_s: float = 30.0,
         jitter: float = 0.2,
         window: int = 8,
-        window_max: int = 64,
-        ack_target_s: float = 1.0,
+        window_max: int = 32,
+        ack_target_s: float = 0.5,
         window_min: int = 2,
     ) -> None:
         self.agent = agent
@@ -157,8 +159,12 @@ class CommModule:
             self.srtt = 0.875 * self.srtt + 0.125 * lat
         if lat <= self.ack_target_s:
             self.window = min(self.window + 1.0, float(self.window_max))
-        elif now - self._last_cut >= self.srtt:
-            # One cut per round trip: the acks of one late burst are one congestion signal.
+        else:
+            self._cut_window(now)
+
+    def _cut_window(self, now: float) -> None:
+        # One cut per round trip: the acks of one late burst are one congestion signal.
+        if now - self._last_cut >= (self.srtt or self.resend_timeout_s):
             self._last_cut = now
             self.window = max(float(self.window_min), self.window / 2)
             self.stats.window_cuts += 1
@@ -304,6 +310,9 @@ class CommModule:
             if now - s.t > s.timeout:
                 self._backoff = min(max(self._backoff, 2.0 ** self.attempts.get(i, 1)),
                                     self.backoff_max_s / self.resend_timeout_s)  # fmt: skip
+                # A loaded server sheds what waited too long and acknowledges nothing
+                # of it: no late ack to measure, so the timeout is the signal.
+                self._cut_window(now)
                 self._requeue_kf(i, "timeout")
                 n += 1
         for i, s in list(self.sent_mps.items()):

@@ -33,9 +33,23 @@ LOCK_HOLD = Histogram(
     buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0, 2.5),
 )
 
+OVERLOAD_LEVEL = Gauge(
+    "hivemap_mapper_overload_level",
+    "What the mapper sheds now: 0 nothing, 1 live poses, 2 + feedback rate, "
+    "3 + place recognition and optimization deferred, 4 + keyframe batches",
+)
+SHED = Counter(
+    "hivemap_mapper_shed_total",
+    "Work shed under overload: poses not stored, feedback rounds slowed, event and "
+    "optimization rounds deferred, keyframe batches left unacknowledged for a resend",
+    ["what"],
+)
+
 # Every known label value exists from the start (at 0), so a dashboard shows "no merges
 # yet" as 0 rather than as an empty panel.
 for _kind in ("merge", "loop", "loop_redundant"):
     MATCHES.labels(_kind)
 for _reason in ("merge", "loop", "continue"):
     OPT_REQUESTS.labels(_reason)
+for _what in ("pose", "feedback", "placerec", "optimize", "keyframe_batch"):
+    SHED.labels(_what)

@@ -71,9 +71,12 @@ from .metrics import (
     LEASE_RENEWALS,
     MAP_POINTS,
     MAPS_OWNED,
+    OVERLOAD_LEVEL,
     QUEUE_DEPTH,
+    SHED,
     TAKEOVERS,
 )
+from .overload import BACKGROUND, FEEDBACK, LEVELS, POSES, Overload
 from .ownership import Ownership
 from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
@@ -85,6 +88,10 @@ SERVICE = "mapper"
 CULL_EVERY = 4  # batches between rejection rounds while a shared map's queue is full
 EVENT_MAX_DELAY_S = 0.5  # keyframe events wait at most this long behind queued batches
 EVENTS_PER_BATCH = 4
+# Under overload (level background) keyframe events wait, but not longer than this:
+# place recognition deferred is merges and loops late, deferred for ever is lost.
+EVENT_MAX_DEFER_S = 30.0
+POSE_INTERVAL_SHED_S = 1.0  # an agent's live pose stored at most this often when shedding
 LOAD_WINDOW_S = 2.0  # an actor's load is its busy share over about this long
 
 
@@ -135,6 +142,8 @@ class MapActor:
                     self.reg.actor(h.map_id).q.put((h, batch, recv_ns, key))
                 continue
             t_batch = time.monotonic()
+            if not svc.admit(h.agent, batch, recv_ns, t_batch):
+                continue
             try:
                 with self.lock:
                     svc.apply(h, batch, recv_ns)
@@ -154,6 +163,7 @@ class MapActor:
             # Keyframe events for place recognition wait while batches are queued (a
             # burst's acks go first), but not past EVENT_MAX_DELAY_S.
             self._publish_events(force=self.q.empty())
+            svc.note_level()
             # In a map several agents share, rejection rounds run between batches as
             # well, not only when idle: agents flying the same place keep adding observers
             # to the same points, and every later keyframe, fusion and map copy pays for
@@ -180,7 +190,12 @@ class MapActor:
         them while batches wait, up to EVENT_MAX_DELAY_S."""
         if not self.events:
             return
-        if not force and time.monotonic() - self._events_since < EVENT_MAX_DELAY_S:
+        now = time.monotonic()
+        if not force and now - self._events_since < EVENT_MAX_DELAY_S:
+            return
+        if (self.svc.level >= BACKGROUND and now - self._events_since < EVENT_MAX_DEFER_S
+                and not self.stop.is_set()):  # fmt: skip
+            SHED.labels("placerec").inc()
             return
         # Overdue during a burst: a few per batch (each is ~4 ms), oldest first.
         n = len(self.events) if self.q.empty() else EVENTS_PER_BATCH
@@ -245,7 +260,9 @@ class MapActor:
         # Feedback is spare-capacity work (up to 16 chunks a second for 8 agents, each
         # several ms in a dense merged map): while registration keeps the actor over
         # half busy, each agent gets it at a quarter of its rate.
-        slow = self.load() > 0.5
+        slow = self.load() > 0.5 or self.svc.level >= FEEDBACK
+        if self.svc.level >= FEEDBACK:
+            SHED.labels("feedback").inc()
         try:
             self.svc.send_feedback(self.smap, should_yield=self.reg.batches_waiting,
                                    rate_factor=0.25 if slow else 1.0)  # fmt: skip
@@ -266,6 +283,10 @@ class MapperService:
         self.bus: Bus | None = None
         self._fb_last: dict[str, float] = {}
         self._fb_sent: dict[str, set[int]] = {}
+        self.overload = Overload.from_shed_after(settings.mapper.shed_after_s)
+        self.level = 0
+        self._level_lock = threading.Lock()
+        self._pose_last: dict[str, float] = {}
         self.collab = Collaboration(self.registry, self.store,
                                     settings.mapper.optimize_min_interval_s)  # fmt: skip
         m = settings.mapper
@@ -555,6 +576,34 @@ class MapperService:
         UP.labels(SERVICE).set(1)
         log.info("mapper running")
 
+    # --- overload (services/mapper/overload.py) ------------------------------------------
+    def admit(self, agent: str, batch: KeyframeBatch, recv_ns: int, now: float) -> bool:
+        """Whether a map actor registers this batch now; a shed one is not acknowledged."""
+        waited = max(time.time_ns() - recv_ns, 0) * 1e-9
+        self.overload.observe(waited, now)
+        if self.overload.admit(agent, [k.id for k in batch.new_kfs], waited, now):
+            return True
+        SHED.labels("keyframe_batch").inc()
+        self.note_level()
+        return False
+
+    def note_level(self) -> None:
+        """Publish the overload level; say so in the log when it changes."""
+        with self._level_lock:
+            self._note_level()
+
+    def _note_level(self) -> None:
+        now = time.monotonic()
+        level = self.overload.level(now)
+        if level != self.level:
+            wait = self.overload.wait(now)
+            shed = ", ".join(LEVELS[1 : level + 1]) or "nothing"
+            logf = log.warning if level > self.level else log.info
+            logf("overload level %d (%s): keyframe batches waited up to %.2f s; shedding %s",
+                 level, LEVELS[level], wait, shed)  # fmt: skip
+            self.level = level
+        OVERLOAD_LEVEL.set(level)
+
     def _dispatch(self, item: Received) -> None:
         agent = keys.agent_of(item.key)
         if agent is not None and not self.serves(agent):
@@ -707,6 +756,10 @@ class MapperService:
     def _optimize_scheduler(self) -> None:
         """Sends debounced optimization requests (a copy of the map each)."""
         while not self._stop.wait(0.25):
+            self.note_level()  # also how the level comes down when batches stop coming
+            if self.level >= BACKGROUND:
+                SHED.labels("optimize").inc()
+                continue  # what is due stays due
             for map_id, reason in self.collab.due(time.monotonic()):
                 try:
                     self.collab.request(map_id, reason)
@@ -735,7 +788,13 @@ class MapperService:
                     continue
                 if p is not None:
                     newest[p.agent] = (p, item.recv_ns)
+            now = time.monotonic()
             for p, recv_ns in newest.values():
+                if self.level >= POSES:
+                    if now - self._pose_last.get(p.agent, -1e18) < POSE_INTERVAL_SHED_S:
+                        SHED.labels("pose").inc()
+                        continue
+                    self._pose_last[p.agent] = now
                 try:
                     self.store_pose(p, recv_ns)
                 except Exception:
