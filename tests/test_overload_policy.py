@@ -22,9 +22,29 @@ def test_levels_rise_with_the_queue_wait_in_order_and_decay():
         Overload((0.3, 0.2, 0.4), 0.6)
 
 
+def test_one_long_wait_is_not_overload():
+    """A batch that waited behind one long lock hold is registered: keyframes are shed
+    only once waits stayed high for sustain_s."""
+    o = Overload((0.1, 0.25, 0.4), shed_after_s=0.6, sustain_s=2.0)
+    o.observe(0.9, 0.0)
+    assert o.admit("A", [0], 0.9, 0.0)
+    o.observe(0.05, 0.5)  # the queue emptied: not sustained
+    o.observe(0.9, 1.0)
+    assert o.admit("A", [1], 0.9, 1.0)
+    o.observe(0.5, 2.0)
+    o.observe(0.9, 3.1)
+    assert not o.admit("A", [2], 0.9, 3.1)
+
+
+def _overloaded(o: Overload, now: float) -> None:
+    o.observe(0.5, now - 3.0)
+    o.observe(0.5, now)
+
+
 def test_a_shed_batch_holds_back_the_agents_later_ones_until_it_comes_back():
     o = Overload((0.1, 0.25, 0.4), shed_after_s=0.6, hole_max_s=10.0)
     assert o.admit("A", [0, 1], 0.1, 0.0)
+    _overloaded(o, 1.0)
     assert not o.admit("A", [2, 3], 0.8, 1.0)  # waited too long: shed
     assert o.level(1.0) == KEYFRAMES
     assert not o.admit("A", [4], 0.1, 1.1)  # fresh, but behind the hole: shed too
@@ -37,6 +57,7 @@ def test_a_shed_batch_holds_back_the_agents_later_ones_until_it_comes_back():
 
 def test_a_hole_the_agent_cannot_fill_closes():
     o = Overload((0.1, 0.25, 0.4), shed_after_s=0.6, hole_max_s=10.0)
+    _overloaded(o, 0.0)
     assert not o.admit("A", [2], 0.8, 0.0)
     assert not o.admit("A", [5], 0.1, 5.0)
     assert o.admit("A", [5], 0.1, 10.5)  # keyframe 2 was dropped by the agent's buffer

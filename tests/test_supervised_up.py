@@ -126,12 +126,13 @@ def _fly(endpoint: str, agent: str, frames: str, speed: float):
     a, b = (int(x) for x in frames.split(":"))
     gt = Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
     s = Settings(zenoh=ZenohSettings(mode="client", connect=[endpoint]))
+    stop = threading.Event()  # ends the flight early
     runner = SimAgentRunner(s, agent, SimAgent(gt, LandmarkWorld(0), drift=DriftModel(), seed=1),
-                            speed=speed, flush_timeout_s=60)  # fmt: skip
+                            speed=speed, flush_timeout_s=60, stop=stop)  # fmt: skip
     out: dict = {}
     t = threading.Thread(target=lambda: out.setdefault("stats", runner.run()), daemon=True)
     t.start()
-    return runner, t, out
+    return runner, t, out, stop
 
 
 def _acked(runner) -> set[int]:
@@ -157,9 +158,9 @@ def test_kill_9_of_the_mapper_restarts_it_and_loses_no_acked_keyframe(tmp_path):
     from shared.store import Store, connect
 
     up = Up(tmp_path, tmp_path / "data")
-    runner = None
+    stop = None
     try:
-        runner, thread, out = _fly(up.endpoint, "k9", "800:1500", speed=2.0)
+        runner, thread, out, stop = _fly(up.endpoint, "k9", "800:1500", speed=2.0)
         deadline = time.monotonic() + 60
         while len(_acked(runner)) < 15 and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -197,8 +198,8 @@ def test_kill_9_of_the_mapper_restarts_it_and_loses_no_acked_keyframe(tmp_path):
         print(f"\nmapper back {back:.1f} s after kill -9, acks resumed after {resumed:.1f} s; "
               f"{len(stored)} keyframes stored, all acked")  # fmt: skip
     finally:
-        if runner is not None:
-            runner.stop_event.set()
+        if stop is not None:
+            stop.set()
         up.stop()
     assert up.proc.returncode == 0
 
@@ -208,7 +209,7 @@ def test_restart_with_the_same_data_dir_serves_the_same_maps_and_trajectories(tm
     data = tmp_path / "data"
     up = Up(tmp_path, data, "up1")
     try:
-        runner, thread, out = _fly(up.endpoint, "p1", "800:1300", speed=0)
+        runner, thread, out, _ = _fly(up.endpoint, "p1", "800:1300", speed=0)
         thread.join(120)
         assert out["stats"].all_acked
 

@@ -14,7 +14,9 @@ first:
                   optimizer wait (merges and loop closures come later, nothing is lost:
                   events queue up and an overdue optimization request still goes out
                   once the level drops);
-4. ``keyframes``  a batch that waited longer than ``shed_after_s`` is not registered
+4. ``keyframes``  once batches have waited past the ``background`` threshold for
+                  ``sustain_s`` (overload, not one long lock hold), a batch that
+                  waited longer than ``shed_after_s`` is not registered
                   and not acknowledged: the agent keeps it and resends it after its
                   backed-off timeout. So the latency of every keyframe the mapper
                   accepts stays bounded, and nothing acknowledged is lost.
@@ -51,6 +53,7 @@ class Overload:
         shed_after_s: float = 0.6,
         decay_s: float = 2.0,
         hole_max_s: float = 10.0,
+        sustain_s: float = 2.0,
     ) -> None:
         if not (0 < thresholds_s[0] <= thresholds_s[1] <= thresholds_s[2] <= shed_after_s):
             raise ValueError("overload thresholds must rise up to shed_after_s")
@@ -58,6 +61,8 @@ class Overload:
         self.shed_after_s = shed_after_s
         self.decay_s = decay_s
         self.hole_max_s = hole_max_s
+        self.sustain_s = sustain_s
+        self._over_since: float | None = None  # waits above the background threshold
         self._wait = 0.0
         self._t = 0.0
         self.holes: dict[str, _Hole] = {}
@@ -74,6 +79,11 @@ class Overload:
         with self._lock:
             self._wait = max(waited_s, self.wait(now))
             self._t = now
+            if waited_s > self.thresholds_s[2]:
+                if self._over_since is None:
+                    self._over_since = now
+            elif waited_s < self.thresholds_s[1]:
+                self._over_since = None
 
     def wait(self, now: float) -> float:
         """Recent queue wait: the largest seen, decaying with ``decay_s``."""
@@ -103,7 +113,8 @@ class Overload:
             if lo > hole.kf_id and now - hole.since < self.hole_max_s:
                 return False  # waits behind the hole
             del self.holes[agent]
-        if waited_s > self.shed_after_s:
+        sustained = self._over_since is not None and now - self._over_since >= self.sustain_s
+        if waited_s > self.shed_after_s and sustained:
             h = self.holes.get(agent)
             self.holes[agent] = _Hole(min(lo, h.kf_id) if h else lo, now)
             return False
