@@ -197,6 +197,19 @@ def test_kill_9_of_the_mapper_restarts_it_and_loses_no_acked_keyframe(tmp_path):
         assert "mapper restarted" in log
         print(f"\nmapper back {back:.1f} s after kill -9, acks resumed after {resumed:.1f} s; "
               f"{len(stored)} keyframes stored, all acked")  # fmt: skip
+        # Any service, not only the mapper: the API answers again, with the same data.
+        api_pid = up.children()["api"]
+        os.kill(api_pid, signal.SIGKILL)
+        t_kill = time.monotonic()
+        agents = None
+        while time.monotonic() - t_kill < 10 and agents is None:
+            try:
+                agents = up.get("/agents")
+            except OSError:
+                time.sleep(0.2)
+        assert agents is not None and up.children()["api"] != api_pid, "api not back in 10 s"
+        assert [a["agent"] for a in agents] == ["k9"]
+        print(f"api back {time.monotonic() - t_kill:.1f} s after kill -9")
     finally:
         if stop is not None:
             stop.set()
