@@ -15,7 +15,9 @@ from shared.settings import Settings
 
 
 def _refused(port: int, password: str | None = None) -> None:
-    c = redis.Redis(host="127.0.0.1", port=port, password=password, socket_connect_timeout=2)
+    # retry=None: redis-py retries a refused command with backoff (3.5 s each here).
+    c = redis.Redis(host="127.0.0.1", port=port, password=password, socket_connect_timeout=2,
+                    retry=None)  # fmt: skip
     try:
         with pytest.raises(redis.AuthenticationError):
             c.ping()
