@@ -19,7 +19,8 @@ demo: $(STAMP)
 	$(BIN)/hivemap demo
 
 # Debian's docker-compose (v1) validates docker-compose.yml where no compose v2
-# plugin exists; prometheus (with promtool) checks the scrape config and, in
+# plugin exists, and with docker.io (dockerd) and debootstrap tests/test_compose.py
+# builds and runs the compose deployment on a private engine; prometheus (with promtool) checks the scrape config and, in
 # tests/test_prometheus.py, scrapes a running stack for real; chromium is the browser
 # tests/test_viewer.py drives through playwright (which never downloads a browser of its
 # own). Best effort: without root or apt the tests that need them say they skipped.
@@ -27,6 +28,9 @@ system-tools:
 	@missing=""; \
 	if ! docker compose version >/dev/null 2>&1 && ! command -v docker-compose >/dev/null 2>&1; then \
 	  missing="$$missing docker-compose"; fi; \
+	command -v dockerd >/dev/null 2>&1 || missing="$$missing docker.io"; \
+	command -v debootstrap >/dev/null 2>&1 || missing="$$missing debootstrap"; \
+	command -v ip >/dev/null 2>&1 || missing="$$missing iproute2"; \
 	command -v promtool >/dev/null 2>&1 && command -v prometheus >/dev/null 2>&1 || missing="$$missing prometheus"; \
 	command -v chromium >/dev/null 2>&1 || missing="$$missing chromium"; \
 	if [ -n "$$missing" ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
