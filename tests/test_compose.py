@@ -38,7 +38,7 @@ CACHE = Path(os.environ.get("HIVEMAP_DOCKER_CACHE", Path.home() / ".cache/hivema
 # What the image build needs of the project; tests, venvs and caches stay out.
 COPY_IGNORE = shutil.ignore_patterns(
     ".git", ".venv", "__pycache__", ".pytest_cache", ".ruff_cache", "*.egg-info", "build",
-    "results", "tests", "*.whl",
+    "results", "tests", "*.whl", "hivemap-data",
 )  # fmt: skip
 CLONE_NEWNET = 0x40000000
 # Two agents flying MH01 from where the drone moves: 1600 frames at 20 Hz, 2x real time,
