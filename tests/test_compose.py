@@ -21,6 +21,7 @@ import contextlib
 import ctypes
 import json
 import os
+import secrets
 import shutil
 import signal
 import subprocess
@@ -68,7 +69,11 @@ class Engine:
         self.sock = self.dir / "docker.sock"
         self.pidfile = self.dir / "dockerd.pid"
         self.log = self.dir / "dockerd.log"
-        self.env = {**os.environ, "DOCKER_HOST": f"unix://{self.sock}"}
+        # The secrets docker-compose.yml refuses to start without (README, "Security").
+        self.token = secrets.token_urlsafe(24)
+        self.env = {**os.environ, "DOCKER_HOST": f"unix://{self.sock}",
+                    "HIVEMAP_API_TOKEN": self.token,
+                    "HIVEMAP_REDIS_PASSWORD": secrets.token_urlsafe(18)}  # fmt: skip
         self.proc: subprocess.Popen | None = None
         self.dockerd_pid: int | None = None
         self._http: ThreadPoolExecutor | None = None
@@ -125,8 +130,10 @@ class Engine:
         if self._http is None:
             self._http = ThreadPoolExecutor(1, initializer=self._enter)
 
+        req = urllib.request.Request(url, headers={"Authorization": f"Bearer {self.token}"})
+
         def get():
-            with urllib.request.urlopen(url, timeout=timeout) as r:
+            with urllib.request.urlopen(req, timeout=timeout) as r:
                 return json.loads(r.read())
 
         return self._http.submit(get).result()
