@@ -286,9 +286,11 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
 
             def targets_up():
                 got = engine.get_json("http://127.0.0.1:9090/api/v1/targets")
-                jobs = {t["labels"]["job"]: t["health"] for t in got["data"]["activeTargets"]}
-                assert set(jobs) == {"mapper", "placerec", "optimizer", "api"}, jobs
-                return all(h == "up" for h in jobs.values())
+                # one target per replica (the scaled services are found by DNS)
+                health = [(t["labels"]["job"], t["health"]) for t in got["data"]["activeTargets"]]
+                assert {j for j, _ in health} == {"mapper", "placerec", "optimizer", "api"}, health
+                assert sum(j == "mapper" for j, _ in health) == mappers, health
+                return all(h == "up" for _, h in health)
 
             wait_for(targets_up, 60, "every Prometheus target up")
             timings["agents_seen"] = time.monotonic() - t
@@ -307,6 +309,7 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
                         and st["State"].get("Health", {}).get("Status") == "healthy")  # fmt: skip
 
             wait_for(restarted, 90, "the restart policy bringing the mapper back, healthy")
+            assert agents.poll() is None, "the agents landed before the mapper was back"
             timings["mapper_back"] = time.monotonic() - t
             wait_for(lambda: all(v["n_kf"] > kfs_at_kill[k] for k, v in _agents(engine).items()),
                      60, "keyframes accepted after the mapper's restart")  # fmt: skip
