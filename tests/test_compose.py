@@ -42,6 +42,7 @@ COPY_IGNORE = shutil.ignore_patterns(
     "results", "tests", "*.whl", "hivemap-data",
 )  # fmt: skip
 CLONE_NEWNET = 0x40000000
+IMAGE_UID = 10001  # the user deploy/Dockerfile runs everything as
 # Two agents flying MH01 from where the drone moves: 1600 frames at 20 Hz, 2x real time,
 # 40 s, long enough for the mapper to be killed and come back while they fly.
 AGENT_FRAMES = "900:2500"
@@ -242,6 +243,16 @@ def _prepare(engine: Engine, tmp_path: Path) -> Path:
     )  # fmt: skip
     assert r.returncode == 0, f"offline-base.sh failed:\n{r.stdout}\n{r.stderr[-4000:]}"
     print(f"offline base and wheelhouse ready in {time.monotonic() - t0:.1f} s: {r.stdout}")
+    # The router's logins, as README "Security" has a user make them for compose. They
+    # are owner-only files: the image's user (uid 10001) must own them to read them.
+    r = subprocess.run(
+        [sys.executable, "-m", "services.cli", "credentials", "add", "--data-dir",
+         str(ctx / "deploy"), "--zenohd", str(ctx / "deploy/zenoh/router.json5")],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    for p in [ctx / "deploy/zenoh", *(ctx / "deploy/zenoh").iterdir()]:
+        os.chown(p, IMAGE_UID, -1)
     return ctx
 
 
