@@ -290,8 +290,10 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
             def moved():
                 now = _agents(engine)
                 pos = {k: v["last_pose"]["position"] for k, v in now.items()}
-                return all(pos[k] != first[k]["last_pose"]["position"]
-                           and now[k]["n_kf"] > first[k]["n_kf"] for k in first)  # fmt: skip
+                ok = all(pos[k] != first[k]["last_pose"]["position"]
+                         and now[k]["n_kf"] > first[k]["n_kf"] for k in first)  # fmt: skip
+                assert ok, {k: (first[k]["n_kf"], now[k]["n_kf"], pos[k]) for k in first}
+                return ok
 
             wait_for(moved, 60, "both agents' poses moving and keyframes growing")
 
