@@ -70,6 +70,10 @@ if [ ! -d "$wheels" ]; then
     rm -f "$wheels.part"/hivemap-*.whl
     mv "$wheels.part" "$wheels"
 fi
+# Only the current wheelhouse is kept (each is ~170 MB; a pyproject.toml change makes one).
+for old in "$cache"/wheelhouse-*; do
+    [ "$old" = "$wheels" ] || rm -rf "$old"
+done
 
 mkdir -p "$wheels_to"
 rm -f "$wheels_to"/*.whl
