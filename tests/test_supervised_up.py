@@ -54,6 +54,13 @@ class Up:
         self.proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=self._err,
                                      text=True)  # fmt: skip
         self.lines: list[str] = []
+        try:
+            self._wait_ready()
+        except BaseException:
+            self.stop()  # else a stack whose output we misread outlives the test
+            raise
+
+    def _wait_ready(self) -> None:
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline:
             line = self.proc.stdout.readline()
