@@ -16,16 +16,15 @@ import json
 import logging
 import time
 
-import redis.asyncio as aioredis
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from shared.messages import DecodeError
 from shared.store import POSE_CHANNEL, LivePose
 
 from .. import feed
-from ..metrics import WS_CLIENTS
 from ..models import pose_out
 from ..security import refused
+from .ws import pose_subscription
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -86,31 +85,23 @@ async def _state(ws: WebSocket) -> None:
 async def ws_viewer(ws: WebSocket) -> None:
     if await refused(ws):
         return
-    await ws.accept()
-    WS_CLIENTS.inc()
-    r = aioredis.Redis.from_url(ws.app.state.settings.redis_url)
-    pubsub = r.pubsub()
-    await pubsub.subscribe(POSE_CHANNEL)
     tasks: list[asyncio.Task] = []
-    try:
-        await _send(ws, {"type": "hello", "points_cap": feed.POINTS_CAP,
-                         "disconnected_after_s": feed.DISCONNECTED_AFTER_S})  # fmt: skip
-        tasks = [asyncio.create_task(_poses(ws, pubsub)), asyncio.create_task(_state(ws))]
-        # The client sends nothing; receive() returns when it goes away.
-        tasks.append(asyncio.create_task(ws.receive()))
-        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        for t in done:
-            e = t.exception()
-            if e is not None and not isinstance(e, (WebSocketDisconnect, OSError, RuntimeError)):
-                log.error("viewer feed failed", exc_info=e)
-    except WebSocketDisconnect:
-        pass
-    finally:
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
-            with contextlib.suppress(BaseException):
-                await t
-        await pubsub.unsubscribe(POSE_CHANNEL)
-        await pubsub.aclose()
-        await r.aclose()
+    async with pose_subscription(ws) as pubsub:
+        try:
+            await _send(ws, {"type": "hello", "points_cap": feed.POINTS_CAP,
+                             "disconnected_after_s": feed.DISCONNECTED_AFTER_S})  # fmt: skip
+            tasks = [asyncio.create_task(_poses(ws, pubsub)), asyncio.create_task(_state(ws))]
+            # The client sends nothing; receive() returns when it goes away.
+            tasks.append(asyncio.create_task(ws.receive()))
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                e = t.exception()
+                ended = (WebSocketDisconnect, OSError, RuntimeError)
+                if e is not None and not isinstance(e, ended):
+                    log.error("viewer feed failed", exc_info=e)
+        finally:
+            for t in tasks:
+                t.cancel()
+            for t in tasks:
+                with contextlib.suppress(BaseException):
+                    await t

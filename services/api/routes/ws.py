@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+from collections.abc import AsyncIterator
 
 import redis.asyncio as aioredis
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from redis.asyncio.client import PubSub
 
 from shared.messages import DecodeError
 from shared.store import POSE_CHANNEL, LivePose
@@ -19,16 +22,30 @@ log = logging.getLogger(__name__)
 router = APIRouter()
 
 
-@router.websocket("/ws/poses")
-async def ws_poses(ws: WebSocket) -> None:
-    if await refused(ws):
-        return
+@contextlib.asynccontextmanager
+async def pose_subscription(ws: WebSocket) -> AsyncIterator[PubSub]:
+    """Accept the socket and subscribe to the live poses; closed however the socket ends
+    (a client going away is the normal end, not an error). /ws/poses and /ws/viewer."""
     await ws.accept()
     WS_CLIENTS.inc()
     r = aioredis.Redis.from_url(ws.app.state.settings.redis_url)
     pubsub = r.pubsub()
     await pubsub.subscribe(POSE_CHANNEL)
     try:
+        yield pubsub
+    except WebSocketDisconnect:
+        pass
+    finally:
+        await pubsub.unsubscribe(POSE_CHANNEL)
+        await pubsub.aclose()
+        await r.aclose()
+
+
+@router.websocket("/ws/poses")
+async def ws_poses(ws: WebSocket) -> None:
+    if await refused(ws):
+        return
+    async with pose_subscription(ws) as pubsub:
         # The subscription is live before the client hears anything, so a pose
         # published after this message is never missed.
         await ws.send_text(json.dumps({"type": "subscribed"}))
@@ -42,9 +59,3 @@ async def ws_poses(ws: WebSocket) -> None:
                 log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
                 continue
             await ws.send_text(json.dumps({"type": "pose", **doc.model_dump()}))
-    except WebSocketDisconnect:
-        pass
-    finally:
-        await pubsub.unsubscribe(POSE_CHANNEL)
-        await pubsub.aclose()
-        await r.aclose()
