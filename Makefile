@@ -45,7 +45,7 @@ dashboards: $(STAMP)
 	$(BIN)/hivemap dashboards
 
 test: $(STAMP) system-tools
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
