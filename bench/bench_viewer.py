@@ -55,7 +55,7 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
     load_before = os.getloadavg()
     try:
         sampler = TrafficSampler(mapper)
-        with viewer_page(stack.viewer_url) if with_viewer else _no_page() as page:
+        with viewer_page(stack.viewer_url, nice=AGENT_NICE) if with_viewer else _no_page() as page:
             stack.add(
                 "sim-agents",
                 ["sim-agent", "--id", "agent", "--count", str(n_agents),
