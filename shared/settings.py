@@ -81,6 +81,11 @@ class CommSettings(BaseModel):
     window_max: int = Field(32, ge=1)
     ack_target_s: float = Field(0.5, gt=0)
     pose_rate_hz: float = Field(10.0, gt=0)
+    # Unacknowledged keyframes the communication module keeps (and resends with backoff
+    # until acked), by their estimated wire size, oldest dropped past it. Apart from the
+    # VO's local map (CCM-SLAM §4.2 trims that to N + B for its compute): a keyframe is
+    # 10-60 kB, so this holds a whole flight's (~5000) while the server is away or shedding.
+    buffer_bytes: int = Field(256_000_000, gt=0)
     # A map point moved by local BA is sent again when it moved by more than this share
     # of its distance from its reference keyframe.
     mp_update_rel: float = Field(0.01, ge=0)

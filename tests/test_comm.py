@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from services.agent.comm import CommModule
+from services.agent.comm import CommModule, estimate_kf_bytes
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from shared.messages import Ack, KeyframeBatch, KeyframeUpdate
 from shared.trajectory import Trajectory, load_euroc_gt
@@ -222,3 +224,40 @@ def test_map_points_wait_for_their_keyframe():
     m = c.next_message(0.0, 0, 0)
     assert [k.id for k in m.new_kfs] == [0]
     assert set(m.new_mps.ref_kf.tolist()) <= {0}
+
+
+def test_a_shedding_server_loses_no_keyframe_of_a_long_flight():
+    """Issue 18 item 2: a server that sheds (acks nothing) for 60 s while the agent keeps
+    making 5 keyframes a second. The backlog (300+ keyframes, past the VO's N + B) stays
+    in the communication module, goes out through the window with backed-off resends,
+    and is all acknowledged once the server takes work again; only a buffer of
+    ``buffer_bytes`` drops the oldest, and says so."""
+    base = _keyframes(1)[0].kf
+    c = CommModule("A", rate_hz=10, resend_timeout_s=1.0, backoff_max_s=8.0, window=4,
+                   window_min=2)  # fmt: skip
+    sends: dict[int, int] = {}
+    n, t = 0, 0.0
+    while t < 90.0:
+        if t < 70.0 and round(t * 10) % 2 == 0:
+            assert c.add_keyframe(replace(base, id=n)) == []
+            n += 1
+        c.check_timeouts(t)
+        m = c.next_message(t, 0, 0)
+        if m is not None:
+            for k in m.new_kfs:
+                sends[k.id] = sends.get(k.id, 0) + 1
+            if t >= 60.0:  # the server takes work again
+                c.on_ack(_ack([k.id for k in m.new_kfs]), t + 0.05)
+        t = round(t + 0.1, 1)
+    assert n == 350 and c.stats.kf_dropped_unacked == 0 and not c.forgotten
+    assert c.acked_kfs == set(range(n)) and not c.kfs and c.buffered_bytes == 0
+    # While shed, only the window's few went out again, backed off to one send per
+    # ~8 s (1, 2, 4, 8, 8, ... s): no resend storm.
+    assert max(sends.values()) <= 12 and sum(sends.values()) <= 1.2 * n, sends
+
+    size = estimate_kf_bytes(base)
+    small = CommModule("B", buffer_bytes=10 * size)
+    dropped = [i for k in range(14) for i in small.add_keyframe(replace(base, id=k))]
+    assert dropped == [0, 1, 2, 3] and small.forgotten == {0, 1, 2, 3}
+    assert sorted(small.kfs) == list(range(4, 14)) and small.queued_kfs == list(range(4, 14))
+    assert small.stats.kf_dropped_unacked == 4 and small.buffered_bytes == 10 * size

@@ -75,14 +75,6 @@ class Throttle:
 
 
 @pytest.mark.slow
-# Issue 18 item 2 is not met in every run: on a quiet machine (clean clone, 2026-11-25,
-# commit 1808924) one agent of six dropped one keyframe from its buffer unacked
-# (kf_lost_unacked == 1) while the mapper was throttled. Kept as a real check that
-# reports XPASS when it holds, until the agent's buffer never lets go of an unacked one.
-@pytest.mark.xfail(
-    reason="issue 18 item 2: an agent may drop an unacked keyframe under a throttled mapper",
-    strict=False,
-)
 def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
     redis_url, zenoh_router, tmp_path
 ):
@@ -126,19 +118,24 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
     stats = [json.loads((tmp_path / f"ov-{i}_stats.json").read_text()) for i in range(AGENTS)]
     made = sum(s["keyframes"] for s in stats)
     resent = sum(s["kf_resent"] for s in stats)
-    for s in stats:
-        assert s["kf_lost_unacked"] == 0, s["agent"]
-        assert s["all_acked"], s["agent"]
-        assert len(store.keyframe_ids(s["agent"])) == s["keyframes"], s["agent"]
+    lost = sum(s["kf_lost_unacked"] for s in stats)
     buckets = _latency_buckets(text.decode())
     p95 = _quantile(buckets, 0.95)
     flights = [s["flight_s"] for s in stats]
     kbps = [s["bytes"] / s["duration_s"] / 1e3 for s in stats]
+    after = elapsed - max(flights)  # from the end of the last flight to the agents' exit
     print(f"\n{AGENTS} agents, {made} keyframes, mapper at {RUN_S / (RUN_S + STOP_S):.0%}: "
           f"accepted latency p95 <= {p95:.2f} s, {resent} keyframes resent "
-          f"({resent / made:.1%}), {min(kbps):.0f}-{max(kbps):.0f} kB/s per agent, flights "
-          f"{min(flights):.0f}-{max(flights):.0f} s, all stored and acked {elapsed:.0f} s "
-          "after the start")  # fmt: skip
+          f"({resent / made:.1%}), {lost} lost unacked, {min(kbps):.0f}-{max(kbps):.0f} "
+          f"kB/s per agent, flights {min(flights):.0f}-{max(flights):.0f} s, agents done "
+          f"{after:.0f} s after the flights")  # fmt: skip
+    # Nothing is lost: every keyframe made is stored and acknowledged within 60 s of the
+    # end of the flights (the agents' buffers hold the backlog however long it lasts).
+    for s in stats:
+        assert s["kf_lost_unacked"] == 0, s["agent"]
+        assert s["all_acked"], s["agent"]
+        assert len(store.keyframe_ids(s["agent"])) == s["keyframes"], s["agent"]
+    assert after <= 60
     # The server was overloaded: acknowledgements lagged production (the backlog sat in
     # the agents, which is what bounds the latency below).
     assert max(s["ack_latency_p95_s"] for s in stats) > 1.0

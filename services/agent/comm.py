@@ -26,6 +26,13 @@ agents send 3-7x their data when acks took longer than that). So, as TCP does:
   radio link (timeouts without overload) a small window with prompt acks still carries
   tens of keyframes a second.
 
+Every keyframe stays here, and is resent with backoff, until the server acknowledges
+it: the backlog of an overloaded or absent server waits in this buffer (CCM-SLAM §4.5),
+not in the VO's local map, which is trimmed for the VO's compute (§4.2) and may let go
+of a keyframe this buffer still holds. The buffer is bounded by the keyframes' estimated
+wire size (``buffer_bytes``, a whole flight's by default); only past that is the oldest
+unacknowledged keyframe dropped (counted as lost).
+
 The same class serves the real VO agent and the feature-level simulated agent.
 """
 
@@ -85,6 +92,7 @@ class CommModule:
         window_max: int = 32,
         ack_target_s: float = 0.5,
         window_min: int = 2,
+        buffer_bytes: int = 256_000_000,
     ) -> None:
         self.agent = agent
         self.min_interval = 1.0 / rate_hz
@@ -111,6 +119,8 @@ class CommModule:
         self.last_send = -1e18
         # Full data of every keyframe / map point not yet acknowledged.
         self.kfs: dict[int, NewKeyframe] = {}
+        self.buffer_bytes = buffer_bytes
+        self.buffered_bytes = 0  # estimated wire size of ``kfs``
         self.mps: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # id -> ref, p_ref, desc
         self.queued_kfs: list[int] = []  # sorted ids waiting to go out
         self.queued_mps: set[int] = set()
@@ -130,7 +140,8 @@ class CommModule:
     def from_settings(cls, agent: str, c) -> CommModule:
         """From ``shared.settings.CommSettings``."""
         return cls(agent, c.rate_hz, c.max_msg_bytes, c.resend_timeout_s, c.backoff_max_s,
-                   c.jitter, c.window, c.window_max, c.ack_target_s, c.window_min)  # fmt: skip
+                   c.jitter, c.window, c.window_max, c.ack_target_s, c.window_min,
+                   c.buffer_bytes)  # fmt: skip
 
     # --- resend timing and window --------------------------------------------------------
     @property
@@ -174,9 +185,29 @@ class CommModule:
         return sum(1 for i in self.sent_kfs if i not in self.held and i not in self.urgent)
 
     # --- input from the local map -------------------------------------------------
-    def add_keyframe(self, kf: NewKeyframe) -> None:
+    def add_keyframe(self, kf: NewKeyframe) -> list[int]:
+        """Buffer a new keyframe until acknowledged. Returns the ids of the oldest
+        unacknowledged ones dropped to keep the buffer within ``buffer_bytes``
+        (normally none)."""
+        old = self.kfs.get(kf.id)
+        if old is not None:
+            self.buffered_bytes -= estimate_kf_bytes(old)
+        else:
+            bisect.insort(self.queued_kfs, kf.id)
         self.kfs[kf.id] = kf
-        bisect.insort(self.queued_kfs, kf.id)
+        self.buffered_bytes += estimate_kf_bytes(kf)
+        dropped = []
+        while self.buffered_bytes > self.buffer_bytes and len(self.kfs) > 1:
+            oldest = min(self.kfs)
+            dropped.append(oldest)
+            self.forget_keyframe(oldest)
+        return dropped
+
+    def _unbuffer(self, kf_id: int) -> NewKeyframe | None:
+        kf = self.kfs.pop(kf_id, None)
+        if kf is not None:
+            self.buffered_bytes -= estimate_kf_bytes(kf)
+        return kf
 
     def add_map_points(self, mps: MapPoints) -> None:
         for j, i in enumerate(mps.ids.tolist()):
@@ -211,9 +242,8 @@ class CommModule:
         self.mp_updates[mp_id] = (ref_kf, np.asarray(p_ref, float))
 
     def forget_keyframe(self, kf_id: int) -> None:
-        """The local map dropped an unacknowledged keyframe (buffer full): it is lost."""
-        if kf_id in self.kfs:
-            del self.kfs[kf_id]
+        """Drop an unacknowledged keyframe (the buffer is full): it is lost."""
+        if self._unbuffer(kf_id) is not None:
             self.stats.kf_dropped_unacked += 1
             self.forgotten.add(kf_id)
         self.sent_kfs.pop(kf_id, None)
@@ -255,8 +285,7 @@ class CommModule:
         acked = ack.kf_ids.tolist()
         newest_seq = max((self._last_seq_by_kf.get(i, -1) for i in acked), default=-1)
         for i in acked:
-            if i in self.kfs:
-                del self.kfs[i]
+            if self._unbuffer(i) is not None:
                 t0 = self.first_sent_at.pop(i, None)
                 if t0 is not None:
                     lat.append(now - t0)

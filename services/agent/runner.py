@@ -3,7 +3,8 @@
 :class:`VOProducer` is the VO side of :class:`~services.agent.loop.AgentLoop`: it tracks
 each image, turns new keyframes, map points and local-BA changes into messages for the
 communication module, bounds the local map (CCM-SLAM §4.2: past N + B keyframes the
-oldest go, unacknowledged ones are lost) and takes the server's map points near KF_ref
+oldest go, unacknowledged ones too; the communication module keeps those until they are
+acknowledged) and takes the server's map points near KF_ref
 into tracking. :class:`Agent` is the loop with this producer.
 
 What it sends, and why it is small (CCM-SLAM §4.5): a keyframe goes out once the two
@@ -198,13 +199,14 @@ class VOProducer:
 
     def _send_keyframes(self, new: list[int]) -> None:
         vo = self.vo
+        dropped: list[int] = []  # by the communication module's bound (normally none)
         for kid in new:
             k = vo.kfs[kid]
             pred = max((i for i in vo.kfs if i < kid), default=-1)
             par = self._parent(k)
             sel = np.nonzero(k.mp >= 0)[0]
             self._kp_sel[kid] = sel
-            self.comm.add_keyframe(NewKeyframe(
+            dropped += self.comm.add_keyframe(NewKeyframe(
                 id=kid, stamp_ns=k.stamp_ns, T_l_kf=k.T_w_c.copy(), pred_id=pred,
                 T_pred_kf=self._rel(k, pred), parent_id=par, T_par_kf=self._rel(k, par),
                 keypoints=k.f.kp[sel], octaves=k.f.octave[sel], descriptors=k.f.desc[sel],
@@ -212,6 +214,8 @@ class VOProducer:
             ))  # fmt: skip
             self._sent_kfs.add(kid)
             self._newest_sent = max(self._newest_sent, kid)
+        if dropped:
+            self._reanchor_points(set(dropped))
         if not new:
             return
         # The new points whose reference keyframe (the oldest that sees them) the server
@@ -270,17 +274,13 @@ class VOProducer:
         vo.ba_applied.clear()
 
     def _trim(self, kf_ref: int) -> None:
+        # An unacknowledged keyframe trimmed here is not lost: the communication module
+        # keeps its message (and the points anchored to it) until the server acks it.
         unacked = self.comm.unacked_kf_ids
         infos = [KfInfo(k, True, k not in unacked) for k in self.vo.kfs]
-        gone = trim(infos, kf_ref, self.n_local, self.n_buffer)
-        for k in gone:
+        for k in trim(infos, kf_ref, self.n_local, self.n_buffer):
             remove_keyframe(self.vo, k)
             self.stats.kf_trimmed += 1
-            if k in unacked:
-                self.comm.forget_keyframe(k)
-        lost = set(gone) & unacked
-        if lost:
-            self._reanchor_points(lost)
 
     def _reanchor_points(self, lost_kfs: set[int]) -> None:
         """Unsent points anchored to a keyframe the server will never get move to a

@@ -24,9 +24,8 @@ class SimProducer:
 
     uses_map = False  # it takes nothing from the server's map
 
-    def __init__(self, sim: SimAgent, buffer_kfs: int = 100) -> None:
+    def __init__(self, sim: SimAgent) -> None:
         self.sim = sim
-        self.buffer_kfs = buffer_kfs
 
     def bind(self, comm: CommModule, stats: AgentStats) -> None:
         self.comm, self.stats = comm, stats
@@ -44,15 +43,9 @@ class SimProducer:
             self.comm.add_map_points(kf.new_mps)
             s.keyframe = True
             self.stats.map_points += len(kf.new_mps)
-            self._trim()
         if self.sim.last_kf is not None:
             s.kf_ref, s.T_l_ref = self.sim.last_kf[0], self.sim.last_kf[1]
         return s
-
-    def _trim(self) -> None:
-        # CCM-SLAM §4.2: past N + B keyframes the oldest unacknowledged ones are lost.
-        while len(self.comm.kfs) > self.buffer_kfs:
-            self.comm.forget_keyframe(min(self.comm.kfs))
 
     def poll(self) -> None:
         pass
@@ -76,12 +69,11 @@ class SimAgentRunner(AgentLoop):
         agent_id: str,
         sim: SimAgent,
         speed: float = 1.0,
-        buffer_kfs: int = 100,
         flush_timeout_s: float = 30.0,
         stop: threading.Event | None = None,
     ) -> None:
         self.sim = sim
-        super().__init__(settings, agent_id, SimProducer(sim, buffer_kfs), speed=speed,
+        super().__init__(settings, agent_id, SimProducer(sim), speed=speed,
                          wait_for_server=True, flush_timeout_s=flush_timeout_s,
                          stop=stop)  # fmt: skip
 
