@@ -12,27 +12,12 @@ import json
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.request
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import table, write_report  # noqa: E402
+import common  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
-from shared.progress import progress  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
-from shared.settings import Settings  # noqa: E402
-
-
-def scrape(url: str) -> dict[str, float]:
-    text = urllib.request.urlopen(url, timeout=5).read().decode()
-    out = {}
-    for ln in text.splitlines():
-        if ln and not ln.startswith("#"):
-            k, _, v = ln.rpartition(" ")
-            out[k] = float(v)
-    return out
 
 
 def main() -> int:
@@ -41,12 +26,7 @@ def main() -> int:
     ap.add_argument("--speed", type=float, default=1.0)
     args = ap.parse_args()
     frames = int(args.seconds * 20 * args.speed)
-    settings = Settings(
-        api_port=free_port(),
-        mapper_metrics_port=free_port(),
-        placerec_metrics_port=free_port(),
-        optimizer_metrics_port=free_port(),
-    )
+    settings = common.stack_settings()
     stack = Stack(settings)
     stack.start()
     out = Path(tempfile.mkdtemp(prefix="hivemap-bench-"))
@@ -61,34 +41,25 @@ def main() -> int:
             env = {**__import__("os").environ, "HIVEMAP_ZENOH__CONNECT": json.dumps(
                 [stack.zenoh_endpoint]), "HIVEMAP_LOG_LEVEL": "WARNING"}  # fmt: skip
             procs.append((agent, seq, subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)))
-        with progress("3 agents flying", args.seconds / args.speed, "s") as update:
-            t0 = time.monotonic()
-            limit = args.seconds / args.speed * 3 + 120
-            while any(p.poll() is None for *_, p in procs) and time.monotonic() - t0 < limit:
-                time.sleep(0.5)
-                update(completed=min(args.seconds / args.speed, time.monotonic() - t0))
-        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        common.wait_agents(procs, args.seconds / args.speed, "3 agents flying")
+        metrics = common.mapper_metrics(stack)
     finally:
-        for _, _, p in procs:
-            if p.poll() is None:
-                p.kill()
-        stack.stop()
+        common.stop_agents(procs, stack)
     rows = []
     for agent, seq, p in procs:
-        st = json.loads((out / f"{agent}_stats.json").read_text())
-        cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
-        tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+        st = common.agent_stats(out, agent)
         rows.append({
             "agent": agent, "traj": seq, "keyframes": st["keyframes"],
             "acked": st["acked_keyframes"], "all_acked": st["all_acked"],
             "latency_median_ms": 1e3 * st["ack_latency_median_s"],
             "latency_p95_ms": 1e3 * st["ack_latency_p95_s"],
-            "server_latency_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
+            "server_latency_mean_ms": common.mapper_latency_mean_ms(metrics, agent),
             "bytes_per_s": st["bytes_per_s"], "messages": st["messages"],
             "exit": p.returncode,
         })  # fmt: skip
-    path = write_report("demo", {"seconds": args.seconds, "speed": args.speed, "agents": rows})
-    print(table(rows, ["agent", "traj", "keyframes", "acked", "latency_median_ms",
+    report = {"seconds": args.seconds, "speed": args.speed, "agents": rows}
+    path = common.write_report("demo", report)
+    print(common.table(rows, ["agent", "traj", "keyframes", "acked", "latency_median_ms",
                        "latency_p95_ms", "server_latency_mean_ms", "bytes_per_s"]))  # fmt: skip
     print(f"written {path}")
     return 0 if all(r["all_acked"] for r in rows) else 1

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,12 +31,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-from common import table, write_report  # noqa: E402
+from common import run_agent, stack_settings, table, write_report  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
 from shared.geometry import umeyama  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
-from shared.settings import Settings  # noqa: E402
 from shared.trajectory import Trajectory, associate, ate, read_tum  # noqa: E402
 
 CAMERAS = {"sharp": "", "blur": "blur=0.5&exposure=1"}
@@ -89,24 +85,19 @@ def run(seq: str, every: int, camera: str, server: bool, frames: str, seed: int)
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-flight-{seq}-"))
     agent = f"fl-{seq.lower()}"
     argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--out", str(out)]
-    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
     stack = None
     t0 = time.monotonic()
     try:
         if server:
-            stack = Stack(Settings(api_port=free_port(), mapper_metrics_port=free_port(),
-                                   placerec_metrics_port=free_port(),
-                                   optimizer_metrics_port=free_port()))  # fmt: skip
+            stack = Stack(stack_settings())
             stack.start(with_api=False)
             argv += ["--server", stack.zenoh_endpoint]
         else:
             argv += ["--no-server"]
-        subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
+        st, gt = run_agent(argv, out, agent)
     finally:
         if stack is not None:
             stack.stop()
-    st = json.loads((out / f"{agent}_stats.json").read_text())
-    gt = read_tum(out / f"{agent}_gt.tum")
     online = read_tum(out / f"{agent}_online.tum")
     vo = read_tum(out / f"{agent}_vo.tum") if server else None
     row = {"seq": seq, "every": every, "camera": camera, "server": server, "seed": seed,

@@ -23,23 +23,18 @@ import random
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+import common  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_demo import scrape  # noqa: E402
-from common import table, write_report  # noqa: E402
 from plots import TrafficSampler, latency_vs_team, traffic_over_time  # noqa: E402
 
 from services import launcher  # noqa: E402
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
-from shared.progress import progress  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
 from shared.runtime import set_priority  # noqa: E402
-from shared.settings import Settings  # noqa: E402
 from shared.trajectory import SEQUENCES, Trajectory, ate, load_euroc_gt  # noqa: E402
 
 COLLAB = ("placerec", "optimizer")
@@ -90,12 +85,7 @@ def _windows(series: list, w: float) -> list[float]:
 def run_latency(
     n_agents: int, seconds: float, collab: bool = False, traffic: dict | None = None
 ) -> list[dict]:
-    settings = Settings(
-        api_port=free_port(),
-        mapper_metrics_port=free_port(),
-        placerec_metrics_port=free_port(),
-        optimizer_metrics_port=free_port(),
-    )
+    settings = common.stack_settings()
     stack = Stack(settings)
     with _plan_without(() if collab else COLLAB):
         stack.start(with_api=False)
@@ -118,33 +108,24 @@ def run_latency(
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         procs = [(f"a{n_agents}-{i}", SEQUENCES[i % 5], p) for i in range(n_agents)]
         sampler = TrafficSampler(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
-        t0 = time.monotonic()
-        with progress(f"{n_agents} agent(s) flying", seconds, "s") as update:
-            while p.poll() is None and time.monotonic() - t0 < seconds * 3 + 120:
-                time.sleep(0.5)
-                update(completed=min(seconds, time.monotonic() - t0))
+        common.wait_agents(procs, seconds, f"{n_agents} agent(s) flying")
         if traffic is not None:
             traffic[f"{n_agents} agent{'s' if n_agents > 1 else ''}"] = sampler.stop()
         else:
             sampler.stop()
         load_after = os.getloadavg()
-        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        metrics = common.mapper_metrics(stack)
     finally:
-        for _, _, p in procs:
-            if p.poll() is None:
-                p.kill()
-        stack.stop()
+        common.stop_agents(procs, stack)
     rows = []
     for agent, seq, _ in procs:
-        st = json.loads((out / f"{agent}_stats.json").read_text())
-        cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
-        tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+        st = common.agent_stats(out, agent)
         rows.append({
             "agents": n_agents, "agent": agent, "traj": seq, "keyframes": st["keyframes"],
             "all_acked": st["all_acked"], "kf_per_s": st["keyframes"] / st["flight_s"],
             "median_ms": 1e3 * st["ack_latency_median_s"],
             "p95_ms": 1e3 * st["ack_latency_p95_s"],
-            "mapper_mean_ms": 1e3 * tot / cnt if cnt else float("nan"),
+            "mapper_mean_ms": common.mapper_latency_mean_ms(metrics, agent),
             "mapper_median_ms": 1e3 * hist_quantile(
                 metrics, "hivemap_keyframe_latency_seconds", f'agent="{agent}"', 0.5),
             "mapper_p95_ms": 1e3 * hist_quantile(
@@ -231,7 +212,7 @@ def main() -> int:
         report["latency"] = rows
         report["traffic"] = traffic
         report["latency_seconds"] = args.seconds
-        print(table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
+        print(common.table(rows, ["agents", "agent", "traj", "keyframes", "kf_per_s", "median_ms",
                            "p95_ms", "mapper_mean_ms", "mapper_p95_ms", "bytes_per_s",
                            "all_acked"]))  # fmt: skip
         loads = [r["loadavg_1m_before_after"] for r in rows if r["agent"].endswith("-0")]
@@ -262,7 +243,7 @@ def main() -> int:
         report["redundancy"] = run_redundancy()
         print("redundancy (MH01 twice):", report["redundancy"])
     name = "mapper" + (f"_{args.only}" if args.only else "") + ("_collab" if args.collab else "")
-    path = write_report(name, report)
+    path = common.write_report(name, report)
     print(f"written {path}")
     if report.get("latency"):
         print("plot", latency_vs_team(report["latency"], path.with_name(f"{name}_vs_team.png"),

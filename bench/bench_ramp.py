@@ -27,16 +27,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from bench_demo import scrape  # noqa: E402
 from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
-from common import table, write_report  # noqa: E402
+from common import mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
 from shared.runtime import set_priority  # noqa: E402
-from shared.settings import Settings  # noqa: E402
 from shared.trajectory import SEQUENCES  # noqa: E402
 
 SERVER = ("mapper", "placerec", "optimizer")
@@ -55,10 +52,7 @@ def _pooled_quantile(metrics: dict[str, float], q: float) -> float:
 
 
 def run_step(n: int, seconds: float) -> dict:
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port(),
-                        placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
-                        log_level="WARNING")  # fmt: skip
-    stack = Stack(settings, env={"HIVEMAP_LOG_LEVEL": "WARNING"})
+    stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix="hivemap-ramp-"))
     try:
@@ -80,7 +74,7 @@ def run_step(n: int, seconds: float) -> dict:
         wall = time.monotonic() - t0
         cpu = {k: cpu_s(pid) - cpu0[k] for k, pid in pids.items()}
         load1 = os.getloadavg()[0]
-        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        metrics = mapper_metrics(stack)
     finally:
         stack.stop()
     stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]

@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import table, write_report  # noqa: E402
+from common import run_agent, table, write_report  # noqa: E402
 
 from services.launcher import _hivemap_exe  # noqa: E402
 from shared.trajectory import ate, read_tum  # noqa: E402
@@ -36,11 +35,8 @@ def fly(seq: str, frames: str, realtime: bool, cpus: str) -> dict:
                              "--out", str(out)] + (["--realtime"] if realtime else [])  # fmt: skip
     if cpus:
         argv = ["taskset", "-c", cpus] + argv
-    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
     load0 = os.getloadavg()[0]
-    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
-    st = json.loads((out / f"{agent}_stats.json").read_text())
-    gt = read_tum(out / f"{agent}_gt.tum")
+    st, gt = run_agent(argv, out, agent)
     a = ate(read_tum(out / f"{agent}_online.tum"), gt)
     n = st["frames"] + st["dropped_frames"]
     return {

@@ -15,21 +15,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_demo import scrape  # noqa: E402
-from common import table, write_report  # noqa: E402
+from common import (  # noqa: E402
+    mapper_latency_mean_ms,
+    mapper_metrics,
+    run_agent,
+    stack_settings,
+    table,
+    write_report,
+)
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
 from shared.progress import track  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
-from shared.settings import Settings  # noqa: E402
 from shared.store import Store, connect  # noqa: E402
 from shared.trajectory import Trajectory, ate, read_tum  # noqa: E402
 
@@ -56,10 +58,7 @@ def run_alone(seq: str, frames: str) -> dict:
     src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
     argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--no-server",
                              "--out", str(out)]  # fmt: skip
-    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
-    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
-    st = json.loads((out / f"{agent}_stats.json").read_text())
-    gt = read_tum(out / f"{agent}_gt.tum")
+    st, gt = run_agent(argv, out, agent)
     online = read_tum(out / f"{agent}_online.tum")
     a_online = ate(online, gt)
     return {
@@ -73,12 +72,7 @@ def run_alone(seq: str, frames: str) -> dict:
 
 
 def run(seq: str, frames: str) -> dict:
-    settings = Settings(
-        api_port=free_port(),
-        mapper_metrics_port=free_port(),
-        placerec_metrics_port=free_port(),
-        optimizer_metrics_port=free_port(),
-    )
+    settings = stack_settings()
     stack = Stack(settings)
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-{seq}-"))
@@ -87,15 +81,12 @@ def run(seq: str, frames: str) -> dict:
         src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
         argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src,
                                  "--server", stack.zenoh_endpoint, "--out", str(out)]  # fmt: skip
-        env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
-        subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
-        metrics = scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+        st, gt = run_agent(argv, out, agent)
+        metrics = mapper_metrics(stack)
         store = Store(connect(stack.settings.redis_url))
         ids, stamps, poses = store.trajectory(agent)
     finally:
         stack.stop()
-    st = json.loads((out / f"{agent}_stats.json").read_text())
-    gt = read_tum(out / f"{agent}_gt.tum")
     online = read_tum(out / f"{agent}_online.tum")  # the VO's poses through the correction
     kfs = read_tum(out / f"{agent}_keyframes.tum")
     a_online = ate(online, gt)
@@ -103,8 +94,6 @@ def run(seq: str, frames: str) -> dict:
     a_kf = ate(kfs, gt)
     a_server = ate(Trajectory(stamps, poses), gt)
     flight_s = (gt.stamps_ns[-1] - gt.stamps_ns[0]) * 1e-9
-    cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
-    tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
     return {
         "seq": seq, "frames": st["frames"], "path_m": a_online.path_length,
         "ate_online_m": a_online.rmse, "ate_online_pct": a_online.percent_of_path,
@@ -115,7 +104,7 @@ def run(seq: str, frames: str) -> dict:
         "bytes_per_s": st["bytes"] / flight_s,
         "ack_latency_median_ms": 1e3 * st["ack_latency_median_s"],
         "ack_latency_p95_ms": 1e3 * st["ack_latency_p95_s"],
-        "mapper_latency_mean_ms": 1e3 * tot / cnt if cnt else None,
+        "mapper_latency_mean_ms": mapper_latency_mean_ms(metrics, agent, missing=None),
         "ate_agent_kf_m": a_kf.rmse, "ate_server_kf_m": a_server.rmse,
         "server_kfs": int(len(ids)),
     }  # fmt: skip

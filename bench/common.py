@@ -1,4 +1,5 @@
-"""Helpers shared by the bench scripts: JSON reports and plain tables."""
+"""Helpers shared by the bench scripts: JSON reports and plain tables, a stack's
+settings on free ports, the mapper's metrics, and an agent run's files."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 import platform
 import subprocess
 import time
+import urllib.request
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -61,3 +63,71 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
+
+
+def stack_settings(**kw):
+    """Settings of a stack with every HTTP port free (``kw``: more settings)."""
+    from shared.redis_server import free_port
+    from shared.settings import Settings
+
+    return Settings(api_port=free_port(), mapper_metrics_port=free_port(),
+                    placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
+                    **kw)  # fmt: skip
+
+
+def scrape(url: str) -> dict[str, float]:
+    """A Prometheus text page: ``name{labels}`` -> value."""
+    text = urllib.request.urlopen(url, timeout=5).read().decode()
+    out = {}
+    for ln in text.splitlines():
+        if ln and not ln.startswith("#"):
+            k, _, v = ln.rpartition(" ")
+            out[k] = float(v)
+    return out
+
+
+def mapper_metrics(stack) -> dict[str, float]:
+    return scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
+
+
+def mapper_latency_mean_ms(metrics: dict[str, float], agent: str, missing=float("nan")):
+    """The mapper's mean keyframe latency (received -> stored and acked) for ``agent``."""
+    cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
+    tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+    return 1e3 * tot / cnt if cnt else missing
+
+
+def wait_agents(procs: list, seconds: float, what: str) -> None:
+    """Waits for the agent processes (``(agent, seq, Popen)`` rows) to end, showing
+    progress over their ``seconds`` of flight; gives up after three times that and two
+    minutes more."""
+    from shared.progress import progress
+
+    with progress(what, seconds, "s") as update:
+        t0, limit = time.monotonic(), 3 * seconds + 120
+        while any(p.poll() is None for *_, p in procs) and time.monotonic() - t0 < limit:
+            time.sleep(0.5)
+            update(completed=min(seconds, time.monotonic() - t0))
+
+
+def stop_agents(procs: list, stack) -> None:
+    """Kills the agent processes still running, then stops the stack."""
+    for _, _, p in procs:
+        if p.poll() is None:
+            p.kill()
+    stack.stop()
+
+
+def agent_stats(out: Path, agent: str) -> dict:
+    """What ``hivemap agent/sim-agent --out OUT`` wrote of ``agent``'s run."""
+    return json.loads((out / f"{agent}_stats.json").read_text())
+
+
+def run_agent(argv: list[str], out: Path, agent: str):
+    """Runs an agent (``argv``, writing to ``out``) to its end, quiet and with one numeric
+    thread; its stats and the ground truth it flew."""
+    from shared.trajectory import read_tum
+
+    env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
+    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
+    return agent_stats(out, agent), read_tum(out / f"{agent}_gt.tum")
