@@ -40,6 +40,7 @@ LATENCY_BAR_S = 0.2
 LATENCY_WARN_S = 0.1
 # What "All" selects in the $agent variable, and what tests substitute for it.
 VARIABLES = {"agent": ".*"}
+AGENTS = '{agent=~"$agent"}'  # the label selector of the agents the variable selects
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "deploy" / "grafana" / "dashboards"
 
@@ -113,6 +114,24 @@ class _Builder:
             out.append(t)
         return out
 
+    def _panel(self, kind, title: str, description: str, unit: str, w: int, h: int):
+        """A panel of ``kind`` (an SDK panel builder module) with what every panel has."""
+        return (
+            kind.Panel()
+            .id(self._id())
+            .title(title)
+            .description(description)
+            .datasource(self.ds)
+            .unit(unit)
+            .height(h)
+            .span(w)
+        )
+
+    def _add(self, panel, queries: list[Q]) -> None:
+        for t in self._targets(queries):
+            panel = panel.with_target(t)
+        self.d = self.d.with_panel(panel)
+
     def _thresholds(self, steps: list[tuple[float | None, str]]):
         return (
             self.dash_b.ThresholdsConfig()
@@ -133,14 +152,7 @@ class _Builder:
         min_val: float | None = 0,
     ) -> None:
         p = (
-            self.ts_b.Panel()
-            .id(self._id())
-            .title(title)
-            .description(description)
-            .datasource(self.ds)
-            .unit(unit)
-            .height(h)
-            .span(w)
+            self._panel(self.ts_b, title, description, unit, w, h)
             .line_width(1)
             .fill_opacity(10)
             .show_points(self.common_m.VisibilityMode.NEVER)
@@ -159,9 +171,7 @@ class _Builder:
                     self.common_m.GraphThresholdsStyleMode.DASHED
                 )
             )
-        for t in self._targets(queries):
-            p = p.with_target(t)
-        self.d = self.d.with_panel(p)
+        self._add(p, queries)
 
     def stat(
         self,
@@ -175,22 +185,13 @@ class _Builder:
         thresholds: list[tuple[float | None, str]] | None = None,
     ) -> None:
         p = (
-            self.stat_b.Panel()
-            .id(self._id())
-            .title(title)
-            .description(description)
-            .datasource(self.ds)
-            .unit(unit)
-            .height(h)
-            .span(w)
+            self._panel(self.stat_b, title, description, unit, w, h)
             .graph_mode(self.common_m.BigValueGraphMode.AREA)
             .color_mode(self.common_m.BigValueColorMode.VALUE)
             .reduce_options(self.common_b.ReduceDataOptions().calcs(["lastNotNull"]))
             .thresholds(self._thresholds(thresholds or [(None, "blue")]))
         )
-        for t in self._targets([query]):
-            p = p.with_target(t)
-        self.d = self.d.with_panel(p)
+        self._add(p, [query])
 
     def state_timeline(
         self,
@@ -210,14 +211,7 @@ class _Builder:
             }  # fmt: skip
         )
         p = (
-            self.stl_b.Panel()
-            .id(self._id())
-            .title(title)
-            .description(description)
-            .datasource(self.ds)
-            .unit("none")
-            .height(h)
-            .span(w)
+            self._panel(self.stl_b, title, description, "none", w, h)
             .mappings([mapping])
             .show_value(self.common_m.VisibilityMode.NEVER)
             .merge_values(True)
@@ -226,9 +220,7 @@ class _Builder:
             .thresholds(self._thresholds([(None, "text")]))
             .color_scheme(self.dash_b.FieldColor().mode(self.dash_m.FieldColorModeId.THRESHOLDS))
         )
-        for t in self._targets([query]):
-            p = p.with_target(t)
-        self.d = self.d.with_panel(p)
+        self._add(p, [query])
 
     def agent_variable(self, metric: str) -> None:
         v = (
@@ -266,6 +258,21 @@ def _quantiles(metric: str, by: str = "", window: str = "1m", sel: str = "") -> 
           f"p{int(q * 100)}{suffix}")
         for q in (0.5, 0.95, 0.99)
     ]  # fmt: skip
+
+
+def _per_group(fn: str, metric: str, by: str, legend: str, window: str, sel: str) -> Q:
+    inner = f"{fn}({metric}{sel}[{window}])"
+    return Q(f"sum by ({by}) ({inner})" if by else f"sum({inner})", legend)
+
+
+def _increase(metric: str, by: str, legend: str, window: str = "5m", sel: str = "") -> Q:
+    """How much a counter grew over ``window``, summed per ``by`` labels (all if "")."""
+    return _per_group("increase", metric, by, legend, window, sel)
+
+
+def _rate(metric: str, by: str, legend: str, window: str = "1m", sel: str = "") -> Q:
+    """A counter's rate per second over ``window``, summed per ``by`` labels (all if "")."""
+    return _per_group("rate", metric, by, legend, window, sel)
 
 
 def _agent_of_key(expr: str, direction: str) -> str:
@@ -323,7 +330,7 @@ def team_dashboard() -> dict:
         "Merges and loops (per 5 min)",
         "Place matches the mapper applied: `merge` fused two maps, `loop` closed a loop "
         "inside one, `loop_redundant` was a loop between keyframes already linked.",
-        [Q("sum by (kind) (increase(hivemap_matches_applied_total[5m]))", "{{kind}}")],
+        [_increase("hivemap_matches_applied_total", "kind", "{{kind}}")],
         "short",
     )  # fmt: skip
 
@@ -365,18 +372,17 @@ def team_dashboard() -> dict:
         "Frames an agent tracked more than a frame period late (a live camera would have "
         "dropped them), and keyframes it dropped unacknowledged because its buffer was "
         "full (the server never gets them).",
-        [Q('sum by (agent) (increase(hivemap_agent_frames_dropped_total{agent=~"$agent"}'
-           "[1m]))", "frames {{agent}}"),
-         Q('sum by (agent) (increase(hivemap_agent_keyframes_lost_total{agent=~"$agent"}'
-           "[1m]))", "keyframes {{agent}}")],
+        [_increase("hivemap_agent_frames_dropped_total", "agent", "frames {{agent}}", "1m", AGENTS),
+         _increase("hivemap_agent_keyframes_lost_total", "agent", "keyframes {{agent}}", "1m",
+                   AGENTS)],
         "short", w=8, thresholds=[(None, "green"), (1, "orange")],
     )  # fmt: skip
     b.timeseries(
         "Resends per agent (per minute)",
         "Keyframes and map points each agent sent again (a gap in the acks, a server "
         "asking for a missing predecessor, or no ack in time).",
-        [Q('sum by (agent) (increase(hivemap_agent_resends_total{agent=~"$agent"}[1m]))',
-           "{{agent}}")], "short", w=8,
+        [_increase("hivemap_agent_resends_total", "agent", "{{agent}}", "1m", AGENTS)], "short",
+        w=8,
     )  # fmt: skip
     b.timeseries(
         "Keyframe ack latency as the agent sees it (publish -> ack)",
@@ -392,16 +398,15 @@ def team_dashboard() -> dict:
         "Uplink sent by agents vs received by the mapper",
         "Bytes per second each agent says it sent, and what the mapper received from it: "
         "a gap is data lost on the way.",
-        [Q('sum by (agent) (rate(hivemap_agent_sent_bytes_total{agent=~"$agent"}[1m]))',
-           "sent {{agent}}"),
+        [_rate("hivemap_agent_sent_bytes_total", "agent", "sent {{agent}}", sel=AGENTS),
          Q(_agent_of_key('rate(hivemap_bytes_total{service="mapper", direction="in"}[1m])',
                          "up"), "received {{agent}}")], "Bps",
     )  # fmt: skip
     b.timeseries(
         "Keyframes stored per second",
         "Keyframes per second each agent got registered and stored.",
-        [Q('sum by (agent) (rate(hivemap_keyframe_latency_seconds_count{agent=~"$agent"}[1m]))',
-           "{{agent}}")], "ops", w=8,
+        [_rate("hivemap_keyframe_latency_seconds_count", "agent", "{{agent}}", sel=AGENTS)],
+        "ops", w=8,
     )  # fmt: skip
     up = 'rate(hivemap_bytes_total{service="mapper", direction="in"}[1m])'
     down = 'rate(hivemap_bytes_total{service="mapper", direction="out"}[1m])'
@@ -464,9 +469,8 @@ def server_dashboard() -> dict:
         "Rejected messages and requests",
         "Samples that failed to decode or validate, per service and reason, and API "
         "requests refused (unknown ids, malformed parameters). Never fatal, always counted.",
-        [Q("sum by (service, reason) (increase(hivemap_messages_rejected_total[5m]))",
-           "{{service}}: {{reason}}"),
-         Q("sum by (reason) (increase(hivemap_api_rejected_total[5m]))", "api: {{reason}}")],
+        [_increase("hivemap_messages_rejected_total", "service, reason", "{{service}}: {{reason}}"),
+         _increase("hivemap_api_rejected_total", "reason", "api: {{reason}}")],
         "short", w=8,
     )  # fmt: skip
 
@@ -503,17 +507,15 @@ def server_dashboard() -> dict:
         "Geometric verifications (per 5 min)",
         "Sim(3) RANSAC verifications of place candidates, accepted or rejected, and the "
         "keyframes in the place database.",
-        [Q("sum by (result) (increase(hivemap_placerec_verifications_total[5m]))",
-           "{{result}}"),
+        [_increase("hivemap_placerec_verifications_total", "result", "{{result}}"),
          Q("hivemap_placerec_db_keyframes", "keyframes in database")],
         "short", w=8,
     )  # fmt: skip
     b.timeseries(
         "Matches published and applied (per 5 min)",
         "Verified matches placerec published, and those the mapper applied.",
-        [Q("sum by (kind) (increase(hivemap_placerec_matches_total[5m]))",
-           "published {{kind}}"),
-         Q("sum by (kind) (increase(hivemap_matches_applied_total[5m]))", "applied {{kind}}")],
+        [_increase("hivemap_placerec_matches_total", "kind", "published {{kind}}"),
+         _increase("hivemap_matches_applied_total", "kind", "applied {{kind}}")],
         "short", w=8,
     )  # fmt: skip
     b.timeseries(
@@ -521,12 +523,10 @@ def server_dashboard() -> dict:
         "Global optimizations (Sim(3) pose graph + BA) requested by the mapper, finished "
         "by the optimizer, superseded by a newer copy of the same map, and corrections "
         "the mapper applied.",
-        [Q("sum by (reason) (increase(hivemap_optimize_requests_total[5m]))",
-           "requested: {{reason}}"),
-         Q("sum by (reason) (increase(hivemap_optimizations_total[5m]))",
-           "finished: {{reason}}"),
-         Q("sum(increase(hivemap_optimizations_superseded_total[5m]))", "superseded"),
-         Q("sum(increase(hivemap_corrections_applied_total[5m]))", "corrections applied")],
+        [_increase("hivemap_optimize_requests_total", "reason", "requested: {{reason}}"),
+         _increase("hivemap_optimizations_total", "reason", "finished: {{reason}}"),
+         _increase("hivemap_optimizations_superseded_total", "", "superseded"),
+         _increase("hivemap_corrections_applied_total", "", "corrections applied")],
         "short", w=8,
     )  # fmt: skip
     b.timeseries(
@@ -542,7 +542,7 @@ def server_dashboard() -> dict:
     b.timeseries(
         "Culled keyframes (per 5 min)",
         "Redundant keyframes removed from each map (CCM-SLAM 4.6).",
-        [Q("sum by (map) (increase(hivemap_keyframes_culled_total[5m]))", "{{map}}")],
+        [_increase("hivemap_keyframes_culled_total", "map", "{{map}}")],
         "short", w=8,
     )  # fmt: skip
 
@@ -550,22 +550,21 @@ def server_dashboard() -> dict:
     b.timeseries(
         "Bytes per second by service and direction",
         "Zenoh payload bytes each service sends and receives.",
-        [Q("sum by (service, direction) (rate(hivemap_bytes_total[1m]))",
-           "{{service}} {{direction}}")], "Bps", w=8,
+        [_rate("hivemap_bytes_total", "service, direction", "{{service}} {{direction}}")],
+        "Bps", w=8,
     )  # fmt: skip
     b.timeseries(
         "Messages per second by service and direction",
         "Zenoh samples each service sends and receives.",
-        [Q("sum by (service, direction) (rate(hivemap_messages_total[1m]))",
-           "{{service}} {{direction}}")], "ops", w=8,
+        [_rate("hivemap_messages_total", "service, direction", "{{service}} {{direction}}")],
+        "ops", w=8,
     )  # fmt: skip
     b.timeseries(
         "API requests",
         "HTTP requests per second by route and status, WebSocket connections accepted "
         "per minute.",
-        [Q("sum by (route, status) (rate(hivemap_api_requests_total[1m]))",
-           "{{route}} {{status}}"),
-         Q("sum(increase(hivemap_api_ws_connections_total[1m]))", "websocket connections")],
+        [_rate("hivemap_api_requests_total", "route, status", "{{route}} {{status}}"),
+         _increase("hivemap_api_ws_connections_total", "", "websocket connections", window="1m")],
         "reqps", w=8,
     )  # fmt: skip
     b.timeseries(
