@@ -57,6 +57,19 @@ def aligned_trajectories(trajs: dict, max_points: int = 400) -> dict:
     return out
 
 
+def _save(fig, path: Path, ax=None, title: str = "") -> Path:
+    """``fig`` laid out, written to ``path`` and closed; ``ax`` (if given) titled, with a
+    light grid and a small legend first."""
+    if ax is not None:
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def trajectories(data: dict, path: Path, title: str) -> Path:
     """Every agent's estimate (solid, its colour) against its ground truth (dashed),
     top-down (x, y of the EuRoC world), one panel per map."""
@@ -81,10 +94,7 @@ def trajectories(data: dict, path: Path, title: str) -> Path:
         ax.legend(fontsize=7, loc="best", title_fontsize=7,
                   title="solid: server map, dashed: ground truth\n"
                         "(one similarity per map; RMS error per agent)")  # fmt: skip
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def latency_vs_team(rows: list[dict], path: Path, title: str = "Keyframe latency") -> Path:
@@ -110,13 +120,7 @@ def latency_vs_team(rows: list[dict], path: Path, title: str = "Keyframe latency
     ax.set_ylabel("latency per agent [ms]")
     ax.set_xticks(ns)
     ax.set_ylim(bottom=0)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, ax, title)
 
 
 def traffic_over_time(series: dict[str, list], path: Path, title: str = "Mapper traffic") -> Path:
@@ -144,13 +148,7 @@ def traffic_over_time(series: dict[str, list], path: Path, title: str = "Mapper 
     ax.set_xlabel("time [s]")
     ax.set_ylabel("kB/s")
     ax.set_ylim(bottom=0)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, ax, title)
 
 
 class TrafficSampler:
