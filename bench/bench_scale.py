@@ -13,6 +13,7 @@ one box to a cluster").
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -20,13 +21,11 @@ import urllib.request
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import table, write_report  # noqa: E402
+from common import stack_settings, table, write_report  # noqa: E402
 from prometheus_client.parser import text_string_to_metric_families  # noqa: E402
 
 from services.launcher import Scale, Stack, service_plan  # noqa: E402
 from shared.jobs import JobQueue  # noqa: E402
-from shared.redis_server import free_port  # noqa: E402
-from shared.settings import Settings  # noqa: E402
 from shared.store import Store, connect  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
@@ -47,16 +46,22 @@ def metric(port: int, name: str, labels: dict[str, str]) -> float:
     return 0.0
 
 
-def run(scale: Scale, agents: int, frames: str, speed: float) -> list[dict]:
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port(),
-                        placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
-                        log_level="WARNING")  # fmt: skip
-    stack = Stack(settings, env={"HIVEMAP_LOG_LEVEL": "WARNING"}, scale=scale)
+@contextlib.contextmanager
+def _stack(scale: Scale):
+    """The stack at ``scale``, quiet, once started, with each process's CPU seconds then
+    (the processes' start, imports and vocabulary, is not per keyframe); stopped after."""
+    stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"},
+                  scale=scale)  # fmt: skip
     stack.start()
     try:
-        # CPU from here on: the processes' start (imports, vocabulary) is not per keyframe.
         time.sleep(3)
-        cpu0 = {c.name: cpu_s(c.proc.pid) for c in stack.children}
+        yield stack, {c.name: cpu_s(c.proc.pid) for c in stack.children}
+    finally:
+        stack.stop()
+
+
+def run(scale: Scale, agents: int, frames: str, speed: float) -> list[dict]:
+    with _stack(scale) as (stack, cpu0):
         stack.add("sim-agents", ["sim-agent", "--id", "team", "--count", str(agents),
                                  "--traj", "MH01,MH02,MH03", "--frames", frames,
                                  "--speed", str(speed), "--flush-timeout", "30"],
@@ -104,8 +109,6 @@ def run(scale: Scale, agents: int, frames: str, speed: float) -> list[dict]:
         rows.append({"scale": rows[0]["scale"], "instance": "(jobs taken per worker)",
                      "jobs_done": sorted(taken.values())})  # fmt: skip
         return rows
-    finally:
-        stack.stop()
 
 
 def run_teams(scale: Scale, per_team: int, frames: str, speed: float) -> dict:
@@ -116,14 +119,7 @@ def run_teams(scale: Scale, per_team: int, frames: str, speed: float) -> dict:
     from services.team_cli import collect
     from shared.evaluation import evaluate_team
 
-    settings = Settings(api_port=free_port(), mapper_metrics_port=free_port(),
-                        placerec_metrics_port=free_port(), optimizer_metrics_port=free_port(),
-                        log_level="WARNING")  # fmt: skip
-    stack = Stack(settings, env={"HIVEMAP_LOG_LEVEL": "WARNING"}, scale=scale)
-    stack.start()
-    try:
-        time.sleep(3)
-        cpu0 = {c.name: cpu_s(c.proc.pid) for c in stack.children}
+    with _stack(scale) as (stack, cpu0):
         for k in range(3):
             stack.add(f"team{k}", ["sim-agent", "--id", f"t{k}", "--count", str(per_team),
                                    "--traj", "MH01,MH02,MH03", "--frames", frames,
@@ -170,8 +166,6 @@ def run_teams(scale: Scale, per_team: int, frames: str, speed: float) -> dict:
                        "joint_ate_mm": 1e3 * e.joint_ate_m} for e in evals],
             "mappers": mappers,
         }  # fmt: skip
-    finally:
-        stack.stop()
 
 
 def main() -> int:
