@@ -690,6 +690,7 @@ class OptimizeRequest(_Record):
     """
 
     SCHEMA: ClassVar[str] = "hivemap.optimize/1"
+    REASONS: ClassVar[tuple[str, ...]] = ("merge", "loop", "continue")  # why it was asked
     FIELDS: ClassVar[dict[str, Any]] = {
         "map_id": "id", "version": "int", "reason": "str", "sent_ns": "int", "fx": "float",
         "kf_gids": ("<i8", (None,)), "T_m_kf": ("<f8", ("kf_gids", 4, 4)),

@@ -68,6 +68,13 @@ MAP_SIZE = Gauge("hivemap_map_keyframes", "Keyframes per server map", ["map"])
 UP = Gauge("hivemap_service_up", "1 while the service loop runs", ["service"])
 
 
+def at_zero(metric, values) -> None:
+    """Each label value of ``values`` exists from the start, at 0, so a dashboard shows
+    "none yet" as 0 rather than as an empty panel."""
+    for v in values:
+        metric.labels(v)
+
+
 def metrics_text() -> tuple[bytes, str]:
     return generate_latest(REGISTRY), CONTENT_TYPE_LATEST
 

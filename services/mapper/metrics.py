@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from prometheus_client import Counter, Gauge, Histogram
 
+from shared.messages import OptimizeRequest
+from shared.metrics import at_zero
+
 CULLED = Counter("hivemap_keyframes_culled_total", "Redundant keyframes removed", ["map"])
 FEEDBACK_BYTES = Counter(
     "hivemap_feedback_bytes_total", "Map chunk bytes sent back to agents", ["agent"]
@@ -47,9 +50,6 @@ SHED = Counter(
 
 # Every known label value exists from the start (at 0), so a dashboard shows "no merges
 # yet" as 0 rather than as an empty panel.
-for _kind in ("merge", "loop", "loop_redundant"):
-    MATCHES.labels(_kind)
-for _reason in ("merge", "loop", "continue"):
-    OPT_REQUESTS.labels(_reason)
-for _what in ("pose", "feedback", "placerec", "optimize", "keyframe_batch"):
-    SHED.labels(_what)
+at_zero(MATCHES, ("merge", "loop", "loop_redundant"))
+at_zero(OPT_REQUESTS, OptimizeRequest.REASONS)
+at_zero(SHED, ("pose", "feedback", "placerec", "optimize", "keyframe_batch"))

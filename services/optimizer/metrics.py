@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from prometheus_client import Counter
 
+from shared.messages import OptimizeRequest
+from shared.metrics import at_zero
+
 OPTIMIZATIONS = Counter(
     "hivemap_optimizations_total", "Global optimizations finished and published", ["reason"]
 )
@@ -20,7 +23,5 @@ JOBS = Counter(
 )
 
 # Known reasons (the mapper's OptimizeRequest.reason) exist from the start, at 0.
-for _reason in ("merge", "loop", "continue"):
-    OPTIMIZATIONS.labels(_reason)
-for _outcome in ("taken", "claimed", "done", "superseded", "invalid", "failed"):
-    JOBS.labels(_outcome)
+at_zero(OPTIMIZATIONS, OptimizeRequest.REASONS)
+at_zero(JOBS, ("taken", "claimed", "done", "superseded", "invalid", "failed"))

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from prometheus_client import Counter, Gauge, Histogram
 
+from shared.metrics import at_zero
+
 QUERY_SECONDS = Histogram(
     "hivemap_placerec_query_seconds",
     "BoW conversion, inter- and intra-map database queries and consistency, per keyframe",
@@ -26,9 +28,6 @@ KEYFRAMES = Counter(
 DB_KEYFRAMES = Gauge("hivemap_placerec_db_keyframes", "Keyframes in the place database")
 
 # Known label values exist from the start, at 0.
-for _result in ("accepted", "rejected"):
-    VERIFIED.labels(_result)
-for _role in ("stored", "queried"):
-    KEYFRAMES.labels(_role)
-for _kind in ("merge", "loop"):
-    MATCHES_PUBLISHED.labels(_kind)
+at_zero(VERIFIED, ("accepted", "rejected"))
+at_zero(KEYFRAMES, ("stored", "queried"))
+at_zero(MATCHES_PUBLISHED, ("merge", "loop"))
