@@ -355,11 +355,8 @@ class AgentLoop:
         if key.endswith("/down/map"):
             self._on_chunk(payload, key)
             return
-        try:
-            ack = Ack.decode(payload)
-        except DecodeError as e:
-            REJECTED.labels("agent", key, "invalid").inc()
-            log.warning("bad ack: %s", e)
+        ack = self._decoded(Ack, payload, key, "ack")
+        if ack is None:
             return
         maps = self.stats.server_maps
         if not maps or maps[-1] != ack.map_id:
@@ -371,12 +368,18 @@ class AgentLoop:
         for lat in self.comm.on_ack(ack, time.monotonic()):
             AGENT_ACK_LATENCY.labels(self.agent).observe(lat)
 
-    def _on_chunk(self, payload: bytes, key: str) -> None:
+    def _decoded(self, cls, payload: bytes, key: str, what: str):
+        """``payload`` as a ``cls`` message, or None (counted, logged) when it is not one."""
         try:
-            c = MapChunk.decode(payload)
+            return cls.decode(payload)
         except DecodeError as e:
             REJECTED.labels("agent", key, "invalid").inc()
-            log.warning("bad map chunk: %s", e)
+            log.warning("bad %s: %s", what, e)
+            return None
+
+    def _on_chunk(self, payload: bytes, key: str) -> None:
+        c = self._decoded(MapChunk, payload, key, "map chunk")
+        if c is None:
             return
         if c.S_g_l is not None:
             S = Sim3.from_matrix(c.S_g_l)
