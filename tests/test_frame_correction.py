@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.mapper.feedback import ANCHOR_KFS, frame_correction
+from services.mapper.feedback import anchor_count, frame_correction
 from services.mapper.registration import AgentHandler
 from services.mapper.server_map import ServerKeyframe, ServerMap
 from shared.geometry import Sim3, exp_so3, fit_sim3_poses, umeyama
@@ -69,8 +69,9 @@ def test_correction_takes_the_drift_out_of_the_reported_poses():
     T_m = np.stack([M.transform_pose(T) for T in T_true])
     vo, corrected = [], []
     for t in range(20, len(T_true)):
-        S = frame_correction(_handler(T_l[: t + 1], T_m[: t + 1]))
-        assert S is not None
+        # None until the first keyframes spread enough to anchor frame g: the agent
+        # reports its VO meanwhile.
+        S = frame_correction(_handler(T_l[: t + 1], T_m[: t + 1])) or Sim3.identity()
         vo.append(T_l[t])
         corrected.append(S.transform_pose(T_l[t]))
     gt = Trajectory(stamps[20:], T_true[20:])
@@ -110,9 +111,40 @@ def test_keyframes_settled_by_global_optimization_weigh_more():
         S = frame_correction(h)
         # Frame g is the agent's first keyframes as the map has them: back into the
         # map's frame through them.
-        A = umeyama(T_l[:ANCHOR_KFS, :3, 3], T_m[:ANCHOR_KFS, :3, 3])
+        k = anchor_count(T_l[:, :3, 3])
+        A = fit_sim3_poses(T_l[:k], T_m[:k])
         P = A.apply(np.stack([S.transform_pose(T) for T in T_l[-10:]])[:, :3, 3])
         return float(np.linalg.norm(P - T_true[-10:, :3, 3], axis=1).mean())
 
     e_settled, e_all = error(True), error(False)
     assert e_settled < 0.8 * e_all, (e_settled, e_all)  # 15.4 vs 23.7 mm
+
+
+def test_anchor_is_no_lever_for_millimetres_of_map_motion():
+    """A slow take-off: the first 20 keyframes lie within 2 cm. A global BA moves them by
+    a millimetre in the map, as it does. The reported pose, 3 units away, must not
+    swing by that millimetre times the lever (3 units / 2 cm): frame g is anchored on
+    keyframes spread widely enough, and there is no correction before there are."""
+    rng = np.random.default_rng(1)
+    n_hover, n = 20, 120
+    T_l = np.stack([np.eye(4)] * n)
+    T_l[:n_hover, 0, 3] = np.linspace(0.0, 0.02, n_hover)
+    a = np.linspace(0.0, np.pi, n - n_hover)  # then an arc, 3 units across
+    T_l[n_hover:, 0, 3] = 0.02 + 1.5 * (1 - np.cos(a))
+    T_l[n_hover:, 1, 3] = 1.5 * np.sin(a)
+    for k, T in enumerate(T_l):
+        T[:3, :3] = exp_so3(np.array([0.0, 0.0, 0.01 * k]))
+    T_m = T_l.copy()
+    T_m[:40, :3, 3] += rng.normal(0.0, 0.001, (40, 3))  # the map moved them by ~1 mm
+    for T in T_m[:40]:
+        T[:3, :3] = exp_so3(rng.normal(0.0, np.deg2rad(0.02), 3)) @ T[:3, :3]
+    # Hovering (no spread yet): no correction, the VO stands.
+    assert anchor_count(T_l[:30, :3, 3]) is None
+    assert frame_correction(_handler(T_l[:n_hover], T_m[:n_hover])) is None
+    S = frame_correction(_handler(T_l, T_m))
+    p = T_l[-1, :3, 3]
+    moved = float(np.linalg.norm(S.apply(p[None])[0] - p))
+    # The first 20 keyframes as the anchor (their centres, as before): 0.4 units.
+    A20 = umeyama(T_l[:20, :3, 3], T_m[:20, :3, 3])
+    lever = float(np.linalg.norm(A20.inverse().apply(p[None])[0] - p))
+    assert moved < 0.005 < 0.1 < lever, (moved, lever)

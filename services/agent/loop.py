@@ -34,7 +34,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from shared import keys
+from shared import feedback_dump, keys
 from shared.geometry import Sim3, se3_inv
 from shared.messages import Ack, DecodeError, MapChunk, PoseUpdate
 from shared.metrics import AGENT_ACK_LATENCY, AGENT_FRAMES_DROPPED, REJECTED, RESENT
@@ -294,6 +294,10 @@ class AgentLoop:
             self._publish_pose(s)
             self._service(0.0)
         st.flight_s = time.monotonic() - t_start
+        if feedback_dump.enabled() and self.vo_poses:
+            feedback_dump.record(self.agent, "vo", stamps=np.array([t for t, _ in self.vo_poses]),
+                                 T=np.stack([T for _, T in self.vo_poses]),
+                                 reported=np.stack([T for _, T in self.poses]))  # fmt: skip
         self.producer.finish()
         deadline = time.monotonic() + self.flush_timeout_s
         while self._flushing() and time.monotonic() < deadline and not self._stop.is_set():
@@ -383,11 +387,14 @@ class AgentLoop:
             return
         if c.S_g_l is not None:
             S = Sim3.from_matrix(c.S_g_l)
-            if self.reported.offer(S):
+            ok = self.reported.offer(S)
+            if ok:
                 self.S_g_l = S
                 self.stats.corrections += 1
             else:
                 self.stats.corrections_held += 1
+            feedback_dump.record(self.agent, "chunk", frame=len(self.vo_poses), sent_ns=c.sent_ns,
+                                 map_id=c.map_id, S_g_l=c.S_g_l, accepted=ok)  # fmt: skip
         self.producer.on_chunk(c)
 
     def _finish(self, t_start: float) -> AgentStats:

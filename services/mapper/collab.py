@@ -38,7 +38,7 @@ from collections.abc import Callable
 import numpy as np
 import redis
 
-from shared import keys
+from shared import feedback_dump, keys
 from shared.camera import EUROC_FX
 from shared.geometry import Sim3
 from shared.jobs import JobQueue
@@ -285,6 +285,8 @@ class Collaboration:
             self.bus.put(keys.map_merged(source.map_id), note.encode())
         log.info("merged map %s into %s (scale %.4f, %d keyframes moved)", source.map_id,
                  target.map_id, S_t_s.s, len(moved.moved_kfs))  # fmt: skip
+        feedback_dump.record("mapper", "merge", source=source.map_id, target=target.map_id,
+                             moved=len(moved.moved_kfs))  # fmt: skip
         self.mark_dirty(target.map_id, "merge")
         return "merge"
 
@@ -385,6 +387,8 @@ class Collaboration:
         with self._lock:
             self._copy_s[map_id] = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
+        feedback_dump.record("mapper", "request", map_id=map_id, reason=reason,
+                             version=int(req.version), kfs=len(req.kf_gids))  # fmt: skip
         log.info("optimization requested for %s (%s, job %s): %d keyframes, %d loops, "
                  "%.1f MB; capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
                  map_id, reason, job, len(req.kf_gids), len(req.loops), len(data) / 1e6,
@@ -428,6 +432,8 @@ class Collaboration:
         with self._lock:
             self._corr_s[c.map_id] = time.perf_counter() - t0
         CORRECTIONS.inc()
+        feedback_dump.record("mapper", "opt", map_id=c.map_id, kfs=len(changed_kfs),
+                             base_version=int(c.base_version), stats=dict(c.stats))  # fmt: skip
         if c.stats.get("ba_stop") == "time_budget":
             self._continue(c.map_id)
         log.info("applied correction to %s: %d keyframes (%d carried along), %d points (%s)",

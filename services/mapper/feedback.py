@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
+from shared import feedback_dump
+from shared.geometry import Sim3, fit_sim3_poses, se3_inv
 from shared.ids import agent_index_of, local_id_of
 from shared.messages import MapChunk
 
@@ -27,8 +28,35 @@ MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 # (4.00 / 3.62 / 8.64 mm).
 LOCAL_FIT_KFS = 10
 OPTIMIZED_WEIGHT = 3
-ANCHOR_KFS = 20  # the agent's first keyframes, which fix its frame g for the whole flight
+# The agent's first keyframes fix its frame g for the whole flight: at least ANCHOR_KFS,
+# and as many more as it takes for their centres to spread ANCHOR_SPREAD (RMS distance
+# from their mean, in the VO's units: the initial median scene depth). A fit on a short
+# baseline is a lever: its rotation is off by about (how far the map moves those
+# keyframes) / (their spread), and that swings the reported pose by the same angle
+# times its distance from them. The first 20 keyframes of a team3 agent span 2 cm of
+# those units (they take off slowly): every global BA that moved them by a millimetre
+# turned frame g by tenths of a degree, and the reported pose, a unit away, by 2-8 cm
+# where the VO was within 4 mm (replayed from a recorded run, bench/replay_feedback.py).
+ANCHOR_KFS = 20
+ANCHOR_SPREAD = 0.4
 MIN_FIT_KFS = 8
+
+
+def anchor_count(
+    c_l: np.ndarray, min_kfs: int = ANCHOR_KFS, spread: float = ANCHOR_SPREAD
+) -> int | None:
+    """How many of the first keyframe centres ``c_l`` (N, 3) the anchor takes: the fewest,
+    at least ``min_kfs``, whose RMS spread about their mean reaches ``spread``; None when
+    the flight so far has not spread that far (no correction yet: the VO has not
+    drifted either)."""
+    if len(c_l) < min_kfs:
+        return None
+    n = np.arange(1, len(c_l) + 1, dtype=float)
+    mean = np.cumsum(c_l, axis=0) / n[:, None]
+    ms = np.cumsum((c_l * c_l).sum(1)) / n
+    rms = np.sqrt(np.maximum(ms - (mean * mean).sum(1), 0.0))
+    ok = np.nonzero((rms >= spread) & (n >= min_kfs))[0]
+    return int(ok[0]) + 1 if len(ok) else None
 
 
 def map_to_agent_ref(
@@ -76,24 +104,23 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     and in the map after registration, loop closures, merges and global optimization
     (``T_m_kf``). Two similarities relate them: ``S_m_l`` fitted on the newest
     ``n_local`` keyframes (where the agent is now) and ``A_m_l`` fitted on its first
-    ``ANCHOR_KFS`` (how the agent's frame sits on the map). ``S_g_l = A_m_l^-1 S_m_l`` moves
-    a VO pose to where the map puts it, expressed in frame ``g``: the agent's own frame
-    as the map sees it, which stays put while the map's frame changes (a merge moves
-    the whole map into another agent's frame; a loop closure re-scales it about the
-    map's first keyframe). With no loop closed, map and VO agree and S_g_l is nearly
-    the identity; after one, it carries the correction of the drift since the agent
-    was last in a place the map knows. The local fit spans tens of keyframes because
-    the newest few are the least settled in the map (their points have few
-    observations when global BA runs). None until the agent has enough keyframes,
-    or when a fit is degenerate."""
+    keyframes (the anchor, :func:`anchor_count`: how the agent's frame sits on the
+    map). ``S_g_l = A_m_l^-1 S_m_l`` moves a VO pose to where the map puts it,
+    expressed in frame ``g``: the agent's own frame as the map sees it, which stays
+    put while the map's frame changes (a merge moves the whole map into another
+    agent's frame; a loop closure re-scales it about the map's first keyframe). With
+    no loop closed, map and VO agree and S_g_l is nearly the identity; after one, it
+    carries the correction of the drift since the agent was last in a place the map
+    knows. The local fit spans tens of keyframes because the newest few are the least
+    settled in the map (their points have few observations when global BA runs).
+    None until the agent has enough keyframes spread widely enough for the anchor, or
+    when a fit is degenerate."""
     smap = h.smap
     kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
     if len(kfs) < MIN_FIT_KFS:
         return None
     T_l = np.stack([k.T_l_kf for k in kfs])
     T_m = np.stack([k.T_m_kf for k in kfs])
-    # The whole flight: centres (the evaluation's alignment too); orientations as well
-    # when the centres are nearly on a line, which leaves a rotation about it unfixed.
     # The anchor is the same keyframes all flight long. Fitted on the whole flight so
     # far (as it was), g itself moved as the drifted VO trajectory grew: the reported
     # poses of early and late in the flight sat in different frames, and the one
@@ -101,10 +128,12 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     # pose came out worse than the raw VO for some agents. The first keyframes have
     # drifted least, and a merge or loop closure moves them with the rest of the map,
     # so g stays the agent's own starting frame.
-    a_l, a_m = T_l[:ANCHOR_KFS], T_m[:ANCHOR_KFS]
-    c = a_l[:, :3, 3]
-    sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
-    A_m_l = umeyama(c, a_m[:, :3, 3]) if sv[1] > 0.05 * sv[0] else fit_sim3_poses(a_l, a_m)
+    # Its rotation comes from the keyframes' orientations (fit_sim3_poses), which a short
+    # or straight baseline does not weaken; the scale from their centres' spread.
+    k = anchor_count(T_l[:, :3, 3])
+    if k is None:
+        return None
+    A_m_l = fit_sim3_poses(T_l[:k], T_m[:k])
     # Weighted towards keyframes a global optimization has settled (each counts
     # OPTIMIZED_WEIGHT times): the newest ones still sit where registration first put
     # them, and where the map's frontier is worse than the VO they pulled the
@@ -141,6 +170,8 @@ def build_chunk(
     smap = h.smap
     S = frame_correction(h, correction_kfs) if correction_kfs > 0 else None
     S_g_l = None if S is None else S.matrix()
+    if feedback_dump.enabled():
+        _dump(h, now_ns, S_g_l)
     ref_g = h.kf_gid(h.kf_ref) if h.kf_ref >= 0 else -1
     ref = smap.kfs.get(ref_g)
     # The agent's own newest keyframes are always the most covisible with its KF_ref,
@@ -215,4 +246,20 @@ def _correction_only(h: AgentHandler, now_ns: int, S_g_l: np.ndarray) -> MapChun
         T_ref_kf=np.zeros((0, 4, 4)), kf_keypoints=[], kf_descriptors=[], kf_mp_index=[],
         mp_agents=[], mp_ids=none, p_ref=np.zeros((0, 3)),
         mp_descriptors=np.zeros((0, 32), np.uint8), sent_ns=now_ns, S_g_l=S_g_l,
+    )  # fmt: skip
+
+
+def _dump(h: AgentHandler, now_ns: int, S_g_l: np.ndarray | None) -> None:
+    """The inputs of this frame correction (HIVEMAP_FEEDBACK_DUMP): the agent's
+    keyframes as the VO sent them and as the map holds them."""
+    smap = h.smap
+    ids = [i for i in sorted(h.local_poses) if h.kf_gid(i) in smap.kfs]
+    kfs = [smap.kfs[h.kf_gid(i)] for i in ids]
+    feedback_dump.record(
+        "mapper", "fc", agent=h.agent, map_id=smap.map_id, sent_ns=now_ns,
+        n_kfs=len(h.local_poses), ids=np.array(ids), kf_ref=h.kf_ref, latest=h.latest_kf,
+        T_l=np.stack([k.T_l_kf for k in kfs]) if kfs else None,
+        T_m=np.stack([k.T_m_kf for k in kfs]) if kfs else None,
+        optimized=np.array([k.optimized for k in kfs], bool), S_g_l=S_g_l,
+        stamps=np.array([k.stamp_ns for k in kfs], np.int64), version=smap.version,
     )  # fmt: skip

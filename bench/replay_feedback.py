@@ -1,0 +1,129 @@
+"""Replay the frame-correction feedback loop offline from a recorded team run.
+
+Record a run with the mapper's and agents' inputs dumped (``shared.feedback_dump``)::
+
+    HIVEMAP_FEEDBACK_DUMP=/tmp/dump flock /tmp/hivemap-cpu.lock \\
+        .venv/bin/python bench/bench_team.py --only team3 --frames 0:1200 --name team3_dump
+
+then, with the run's output directory (``"out"`` in its bench/results JSON, for the
+ground truth)::
+
+    .venv/bin/python bench/replay_feedback.py /tmp/dump /tmp/hivemap-team-XXXX
+
+For each agent: its raw VO ATE, the reported pose as it flew (``recorded``), the same
+corrections replayed through ``ReportedPose`` (must match ``recorded`` exactly: a check
+of the replay), and the corrections ``services.mapper.feedback.frame_correction`` as it
+is now computes from the recorded map states, replayed at the frames they arrived at.
+The agent's reported pose does not feed back into the map (it publishes its VO pose),
+so a replay is what a live run with the same map would have reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from services.agent.reported import ReportedPose  # noqa: E402
+from services.mapper.feedback import frame_correction  # noqa: E402
+from services.mapper.registration import AgentHandler  # noqa: E402
+from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
+from shared.feedback_dump import load  # noqa: E402
+from shared.geometry import Sim3  # noqa: E402
+from shared.ids import gid  # noqa: E402
+from shared.settings import Settings  # noqa: E402
+from shared.trajectory import Trajectory, ate, read_tum  # noqa: E402
+
+
+def runs(dump: str | Path) -> dict[str, dict]:
+    """Per agent: its VO ("vo": stamps, T, reported) and the chunks it got, each with the
+    mapper's record of the map state it was computed from (or None)."""
+    recs = load(dump)
+    fcs = {(r["agent"], r["sent_ns"]): r for r in recs
+           if r["who"] == "mapper" and r["kind"] == "fc"}  # fmt: skip
+    out = {}
+    for ag in sorted({r["who"] for r in recs if r["who"] != "mapper"}):
+        vo = [r for r in recs if r["who"] == ag and r["kind"] == "vo"]
+        if not vo:
+            continue
+        chunks = [r for r in recs if r["who"] == ag and r["kind"] == "chunk"]
+        out[ag] = {"vo": vo[-1], "chunks": chunks,
+                   "fcs": [fcs.get((ag, c["sent_ns"])) for c in chunks]}  # fmt: skip
+    return out
+
+
+def handler_of(r: dict) -> AgentHandler:
+    """An agent handler holding the recorded keyframes (VO and map poses, optimized)."""
+    smap = ServerMap(r["map_id"])
+    h = AgentHandler(r["agent"], 1, smap)
+    none = np.zeros(0, np.int64)
+    for i, Tl, Tm, opt, st in zip(r["ids"].tolist(), r["T_l"], r["T_m"], r["optimized"].tolist(),
+                                  r["stamps"].tolist(), strict=True):  # fmt: skip
+        kf = ServerKeyframe(gid(1, i), r["agent"], i, st, Tm.copy(), Tl.copy(),
+                            np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros(0, np.uint8),
+                            np.zeros((0, 32), np.uint8), none)  # fmt: skip
+        kf.optimized = bool(opt)
+        smap.add_keyframe(kf)
+        h.local_poses[i] = Tl
+    return h
+
+
+def current(r: dict) -> Sim3 | None:
+    """The correction today's frame_correction computes from a recorded map state."""
+    if r["T_l"] is None:
+        return None
+    return frame_correction(handler_of(r), Settings().mapper.feedback_correction_kfs)
+
+
+def replay(a: dict, fc=None) -> np.ndarray:
+    """The agent's reported poses, frame by frame: the chunks offered to ReportedPose
+    before the frame they arrived ahead of; ``fc(record)`` recomputes each correction
+    (None: the recorded one)."""
+    rp = ReportedPose()
+    at: dict[int, list] = {}
+    for c, r in zip(a["chunks"], a["fcs"], strict=True):
+        at.setdefault(c["frame"], []).append((c, r))
+    out = []
+    for i, T in enumerate(a["vo"]["T"]):
+        for c, r in at.get(i, []):
+            if fc is None:
+                S = None if c["S_g_l"] is None else Sim3.from_matrix(c["S_g_l"])
+            else:
+                S = None if r is None else fc(r)
+            if S is not None:
+                rp.offer(S)
+        out.append(rp.update(T, "ok"))
+    return np.stack(out)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dump")
+    ap.add_argument("out", help="the run's output directory (agentN_gt.tum)")
+    args = ap.parse_args()
+    rows, sums = [], np.zeros(3)
+    for ag, a in runs(args.dump).items():
+        gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
+        st = a["vo"]["stamps"]
+
+        def err(T, st=st, gt=gt) -> float:
+            return ate(Trajectory(st, T), gt).rmse
+
+        rec = a["vo"]["reported"]
+        again = replay(a)
+        e = np.array([err(a["vo"]["T"]), err(rec), err(replay(a, current))])
+        sums += e
+        rows.append((ag, *e, float(np.abs(again - rec).max())))
+    print(f"{'agent':8} {'vo_mm':>7} {'recorded_mm':>12} {'current_mm':>11} {'replay_check':>13}")
+    for ag, v, r, c, d in rows:
+        print(f"{ag:8} {1e3 * v:7.2f} {1e3 * r:12.2f} {1e3 * c:11.2f} {d:13.1e}")
+    print(f"{'sum':8} {1e3 * sums[0]:7.2f} {1e3 * sums[1]:12.2f} {1e3 * sums[2]:11.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
