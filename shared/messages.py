@@ -374,6 +374,9 @@ class Ack:
     # what blocks registration instead of waiting for its timeout.
     held_kf_ids: np.ndarray | None = None
     missing_kf_ids: np.ndarray | None = None
+    # Optional (added within v1): the ``seq`` of the agent's batch this ack answers, -1
+    # not said. The agent learns from it which of its (unacknowledged) updates arrived.
+    seq: int = -1
 
     def encode(self) -> bytes:
         d = {
@@ -386,6 +389,8 @@ class Ack:
             d["held_kf_ids"] = np.asarray(self.held_kf_ids, np.int64)
         if self.missing_kf_ids is not None and len(self.missing_kf_ids):
             d["missing_kf_ids"] = np.asarray(self.missing_kf_ids, np.int64)
+        if self.seq >= 0:
+            d["seq"] = self.seq
         return packb(d)
 
     @staticmethod
@@ -400,6 +405,7 @@ class Ack:
             sent_ns=_int(_get(d, "sent_ns"), "sent_ns"),
             held_kf_ids=_opt_ids(d, "held_kf_ids"),
             missing_kf_ids=_opt_ids(d, "missing_kf_ids"),
+            seq=_int(d["seq"], "seq") if "seq" in d else -1,
         )
 
 

@@ -87,11 +87,13 @@ def test_timeout_resend_when_last_message_lost():
     c.add_map_points(kfs[0].new_mps)
     assert c.next_message(0, 0, 0) is not None
     assert c.check_timeouts(0.5) == 0
-    assert c.check_timeouts(1.5) == 1 + len(kfs[0].new_mps)
+    # The keyframe times out; its points, lost with it, go again with it.
+    assert c.check_timeouts(1.5) == 1
     m = c.next_message(1.5, 0, 0)
     assert [k.id for k in m.new_kfs] == [0]
     assert len(m.new_mps) == len(kfs[0].new_mps)
     assert c.resent_reasons[("kf", "timeout")] == 1
+    assert c.resent_reasons[("mp", "timeout")] == len(kfs[0].new_mps)
 
 
 def test_round_trip_through_encoding_keeps_all_data():
@@ -261,3 +263,54 @@ def test_a_shedding_server_loses_no_keyframe_of_a_long_flight():
     assert dropped == [0, 1, 2, 3] and small.forgotten == {0, 1, 2, 3}
     assert sorted(small.kfs) == list(range(4, 14)) and small.queued_kfs == list(range(4, 14))
     assert small.stats.kf_dropped_unacked == 4 and small.buffered_bytes == 10 * size
+
+
+def test_a_lost_update_goes_again_unless_a_newer_one_is_queued():
+    """Updates are tracked per message (``Ack.seq``): the last update of a keyframe has
+    no successor, so a lost one must be resent, and only while it is the newest."""
+    kfs = _keyframes(3)
+    c = CommModule("A", rate_hz=100, resend_timeout_s=1.0)
+    for k in kfs:
+        c.add_keyframe(k.kf)
+    m0 = c.next_message(0.0, 0, 2)
+    c.on_ack(Ack("A", "m", np.array([0, 1, 2], np.int64), np.zeros(0, np.int64), 2, 0,
+                 seq=m0.seq), 0.05)  # fmt: skip
+
+    def upd(i, x):
+        T = np.eye(4)
+        T[0, 3] = x
+        return KeyframeUpdate(i, i - 1, T, -1, np.eye(4))
+
+    c.update_keyframe(upd(1, 0.1))
+    c.update_keyframe(upd(2, 0.2))
+    m1 = c.next_message(0.1, 0, 2)  # lost
+    c.update_keyframe(upd(2, 0.3))  # newer for 2
+    m2 = c.next_message(0.2, 0, 2)
+    assert [u.id for u in m1.kf_updates] == [1, 2] and [u.id for u in m2.kf_updates] == [2]
+    assert c.has_updates  # not known to have arrived
+    c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 2, 0, seq=m2.seq), 0.25)
+    m3 = c.next_message(0.3, 0, 2)  # 1's update again; 2's old one is superseded
+    assert [(u.id, u.T_pred_kf[0, 3]) for u in m3.kf_updates] == [(1, 0.1)]
+    assert c.resent_reasons[("upd", "gap")] == 1
+    assert c.check_timeouts(0.5) == 0 and c.next_message(0.5, 0, 2) is None
+    c.check_timeouts(2.0)  # m3 unanswered past its timeout: 1's update goes once more
+    assert [u.id for u in c.next_message(2.0, 0, 2).kf_updates] == [1]
+    c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 2, 0, seq=c.seq - 1), 2.1)
+    assert not c.has_updates
+
+
+def test_an_update_of_an_unacked_keyframe_is_folded_into_its_resend():
+    kfs = _keyframes(2)
+    c = CommModule("A", rate_hz=100, resend_timeout_s=1.0)
+    for k in kfs:
+        c.add_keyframe(k.kf)
+    c.next_message(0.0, 0, 1)  # lost
+    T = np.eye(4)
+    T[0, 3] = 0.5
+    c.update_keyframe(KeyframeUpdate(1, 0, T, -1, np.eye(4)))
+    m = c.next_message(0.1, 0, 1)  # the update goes too: the keyframe may be there
+    assert [u.id for u in m.kf_updates] == [1]
+    c.check_timeouts(5.0)
+    again = c.next_message(5.0, 0, 1)
+    assert [k.id for k in again.new_kfs] == [0, 1]
+    assert again.new_kfs[1].T_pred_kf[0, 3] == 0.5  # the resend carries the newest pose

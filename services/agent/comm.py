@@ -33,6 +33,17 @@ of a keyframe this buffer still holds. The buffer is bounded by the keyframes' e
 wire size (``buffer_bytes``, a whole flight's by default); only past that is the oldest
 unacknowledged keyframe dropped (counted as lost).
 
+Updates are small and superseded by newer ones, but a keyframe's last update (when it
+leaves the VO's local BA window) has no successor: lost on a lossy link, the server
+would keep that keyframe's stale pose, and every keyframe chained after it the same
+error (20 % loss doubled the joint ATE). So updates are tracked per message too: the
+server's ack names the batch it answers (``Ack.seq``); an update whose message was
+followed by an ack of a later one, or not answered within the resend timeout, goes out
+again unless a newer one for the same item is already queued. An update of a keyframe
+not acknowledged yet is also folded into the buffered keyframe, so a resend of it
+carries the newest pose. (The server applies pose data newer than what it has only,
+so reordered messages cannot bring an old pose back.)
+
 The same class serves the real VO agent and the feature-level simulated agent.
 """
 
@@ -133,6 +144,11 @@ class CommModule:
         self.acked_kfs: set[int] = set()
         self.forgotten: set[int] = set()  # dropped unacknowledged (may still arrive)
         self._last_seq_by_kf: dict[int, int] = {}
+        # Updates sent and not known to have arrived: id -> (seq of their message, data),
+        # and the messages that carried them: seq -> when sent, timeout.
+        self._upd_kf_sent: dict[int, tuple[int, KeyframeUpdate]] = {}
+        self._upd_mp_sent: dict[int, tuple[int, tuple[int, np.ndarray]]] = {}
+        self._upd_msgs: dict[int, _Sent] = {}
         self.resent_reasons: dict[tuple[str, str], int] = {}
         self.stats = CommStats()
 
@@ -215,14 +231,19 @@ class CommModule:
             self.queued_mps.add(i)
 
     def update_keyframe(self, upd: KeyframeUpdate) -> None:
-        if upd.id in self.kfs and upd.id not in self.sent_kfs:
-            # Not sent yet: fold the change into the new-keyframe message.
-            kf = self.kfs[upd.id]
+        kf = self.kfs.get(upd.id)
+        if kf is not None:
+            # Not acknowledged: fold the change into the buffered keyframe (a resend
+            # carries it); if it never went out, that is all (else the server may have
+            # it, its ack lost or late, and a resend would be only acknowledged).
             kf.pred_id, kf.T_pred_kf = upd.pred_id, upd.T_pred_kf
             kf.parent_id, kf.T_par_kf = upd.parent_id, upd.T_par_kf
             if upd.mp_ids is not None:
                 kf.mp_ids = upd.mp_ids
-            return
+            if upd.id not in self.first_sent_at:
+                self.kf_updates.pop(upd.id, None)
+                self._upd_kf_sent.pop(upd.id, None)  # older than the fold
+                return
         prev = self.kf_updates.get(upd.id)
         if prev is not None and upd.mp_ids is None and prev.mp_ids is not None:
             upd.mp_ids = prev.mp_ids  # new poses, the associations still to send
@@ -254,6 +275,7 @@ class CommModule:
         if i < len(self.queued_kfs) and self.queued_kfs[i] == kf_id:
             self.queued_kfs.pop(i)
         self.kf_updates.pop(kf_id, None)
+        self._upd_kf_sent.pop(kf_id, None)
 
     def forget_map_point(self, mp_id: int) -> None:
         self._mp_attempts.pop(mp_id, None)
@@ -270,7 +292,7 @@ class CommModule:
     def has_updates(self) -> bool:
         """Updates wait to go out (they are never acknowledged: CCM-SLAM sends them
         optimistically, and a newer one supersedes a lost one)."""
-        return bool(self.kf_updates or self.mp_updates)
+        return bool(self.kf_updates or self.mp_updates or self._upd_msgs)
 
     @property
     def pending(self) -> bool:
@@ -328,10 +350,46 @@ class CommModule:
                 if s.seq < newest_seq and i not in held:
                     self._requeue_kf(i, "gap")
             for i, s in list(self.sent_mps.items()):
-                if s.seq < newest_seq:
+                # A point whose keyframe is not acknowledged waits with it on the
+                # server (or goes again with it): no evidence of its own loss.
+                if s.seq < newest_seq and not self._waits_for_kf(i):
                     self._requeue_mp(i, "gap")
+        self._on_update_ack(ack.seq)
         self.stats.ack_latencies.extend(lat)
         return lat
+
+    def _on_update_ack(self, seq: int) -> None:
+        """The server answered batch ``seq``: its updates arrived, and those of earlier
+        unanswered batches were lost (the server takes an agent's batches in order)."""
+        if seq < 0:  # a server that does not say: as before, updates are optimistic
+            self._upd_msgs.clear()
+            self._upd_kf_sent.clear()
+            self._upd_mp_sent.clear()
+            return
+        for s in [s for s in self._upd_msgs if s <= seq]:
+            self._upd_msgs.pop(s)
+            if s < seq:
+                self._requeue_updates(s, "gap")
+            else:
+                for d in (self._upd_kf_sent, self._upd_mp_sent):
+                    for i in [i for i, (q, _) in d.items() if q == s]:
+                        del d[i]
+
+    def _requeue_updates(self, seq: int, reason: str) -> None:
+        n = 0
+        for i in [i for i, (q, _) in self._upd_kf_sent.items() if q == seq]:
+            upd = self._upd_kf_sent.pop(i)[1]
+            if i not in self.kf_updates:  # else a newer one waits already
+                self.kf_updates[i] = upd
+                n += 1
+        for i in [i for i, (q, _) in self._upd_mp_sent.items() if q == seq]:
+            upd = self._upd_mp_sent.pop(i)[1]
+            if i not in self.mp_updates and i not in self.mps:
+                self.mp_updates[i] = upd
+                n += 1
+        if n:
+            key = ("upd", reason)
+            self.resent_reasons[key] = self.resent_reasons.get(key, 0) + n
 
     def check_timeouts(self, now: float) -> int:
         n = 0
@@ -345,14 +403,27 @@ class CommModule:
                 self._requeue_kf(i, "timeout")
                 n += 1
         for i, s in list(self.sent_mps.items()):
-            if now - s.t > s.timeout:
+            if now - s.t > s.timeout and not self._waits_for_kf(i):
                 self._requeue_mp(i, "timeout")
                 n += 1
+        for seq, s in list(self._upd_msgs.items()):
+            if now - s.t > s.timeout:
+                del self._upd_msgs[seq]
+                self._requeue_updates(seq, "timeout")
         return n
 
+    def _waits_for_kf(self, mp_id: int) -> bool:
+        mp = self.mps.get(mp_id)
+        return mp is not None and mp[0] in self.kfs
+
     def _requeue_kf(self, i: int, reason: str) -> None:
-        self.sent_kfs.pop(i, None)
+        sent = self.sent_kfs.pop(i, None)
         self.held.discard(i)
+        if sent is not None:
+            # Its points on their way in the same message were lost with it.
+            for j, s in list(self.sent_mps.items()):
+                if s.seq == sent.seq and self.mps.get(j, (-1,))[0] == i:
+                    self._requeue_mp(j, reason)
         if i in self.kfs:
             j = bisect.bisect_left(self.queued_kfs, i)
             if j >= len(self.queued_kfs) or self.queued_kfs[j] != i:
@@ -430,7 +501,9 @@ class CommModule:
         self.stats.mp_sent += len(mp_ids)
         kf_upd = []
         for i in sorted(self.kf_updates)[: max(0, budget // _UPD_KF_BYTES)]:
-            kf_upd.append(self.kf_updates.pop(i))
+            upd = self.kf_updates.pop(i)
+            kf_upd.append(upd)
+            self._upd_kf_sent[i] = (seq, upd)
         budget -= len(kf_upd) * _UPD_KF_BYTES
         upd_ids = sorted(self.mp_updates)[: max(0, budget // 48)]
         mp_upd = MapPoints(
@@ -440,9 +513,11 @@ class CommModule:
             None,
         )
         for i in upd_ids:
-            del self.mp_updates[i]
+            self._upd_mp_sent[i] = (seq, self.mp_updates.pop(i))
         if not (new_kfs or mp_ids or kf_upd or upd_ids):
             return None  # all of it waits for the window (or its keyframe)
+        if kf_upd or upd_ids:
+            self._upd_msgs[seq] = _Sent(now, seq, self._timeout(1))
         self.seq += 1
         self.last_send = now
         return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)

@@ -397,7 +397,7 @@ class MapperService:
         held, missing = h.blocked()
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
                   np.array(res.ack_mp_ids, np.int64), h.kf_high, time.time_ns(),
-                  np.array(held, np.int64), np.array(missing, np.int64))  # fmt: skip
+                  np.array(held, np.int64), np.array(missing, np.int64), batch.seq)  # fmt: skip
         if self.bus is not None:
             self.bus.put(keys.agent_ack(batch.agent), ack.encode())
             if res.new_kfs:
