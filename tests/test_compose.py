@@ -8,11 +8,18 @@ wheelhouse that deploy/offline-base.sh makes once and keeps in a cache directory
 (HIVEMAP_DOCKER_CACHE, default ~/.cache/hivemap-docker): only the first run fetches
 Debian packages (debootstrap, from apt's mirror) and wheels (pip).
 
-Then: every healthcheck passes, two simulated agents run inside the compose network,
-GET /agents lists both with moving poses and Prometheus has every target up (through
-the published ports 8000 and 9090, from inside the namespace); a `kill -9` of the
-mapper's main process is undone by the restart policy and the agents' keyframes keep
-being acked; `down -v` and the engine's shutdown leave nothing behind.
+The deployment runs scaled, `--scale mapper=2 --scale placerec=2` (issue 20 item 6):
+every healthcheck passes and both mappers say they live in Redis; two simulated agents
+run inside the compose network and are assigned one to each mapper; GET /agents lists
+both with moving poses and Prometheus has every replica's target up (through the
+published ports 8000 and 9090, from inside the namespace); every server map is owned by
+a lease of a live mapper, and both placerecs hold the keyframes (replicated database).
+Then a `kill -9` of the main process of the mapper owning the most maps: each of its
+maps is owned again (the other mapper takes it over, or the restarted one takes it back
+with a new fencing token), the restart policy brings it back, both mappers are live
+again and the agents' keyframes keep being acked to the end; `down -v` and the engine's
+shutdown leave nothing behind. One stack, scaled: a second one would cost the suite
+another two minutes.
 """
 
 from __future__ import annotations
@@ -48,6 +55,32 @@ IMAGE_UID = 10001  # the user deploy/Dockerfile runs everything as
 # more on a loaded machine).
 AGENT_FRAMES = "900:2900"
 AGENT_SPEED = "2"
+MAPPERS, PLACERECS = 2, 2
+LEASE_S = 3.0  # mapper.lease_s, the default compose runs with
+# Run in the api container (its image has the project; HIVEMAP_REDIS_URL is set there):
+# the live mappers, the agents' assignments and every live map's lease and fencing token.
+OWNERSHIP_PY = """
+import json, os, time
+from services.mapper.ownership import K_ASSIGN, K_MAPPERS
+from shared.leases import k_fence, k_lease
+from shared.store import Store, connect
+r = connect(os.environ["HIVEMAP_REDIS_URL"])
+s = Store(r)
+now = time.time() * 1000
+out = {"mappers": {}, "assign": {}, "maps": {}}
+for k, v in r.hgetall(K_MAPPERS).items():
+    d = json.loads(v)
+    d["age_ms"] = now - d.pop("t")
+    out["mappers"][k.decode()] = d
+out["assign"] = {k.decode(): v.decode() for k, v in r.hgetall(K_ASSIGN).items()}
+for m in s.maps():
+    info = s.map_info(m) or {}
+    lease = r.get(k_lease(m))
+    owner, _, token = lease.decode().rpartition(" ") if lease else (None, "", "0")
+    out["maps"][m] = {"n_kf": info.get("n_kf"), "agents": info.get("agents"),
+                      "owner": owner, "token": int(token), "fence": int(r.get(k_fence(m)) or 0)}
+print(json.dumps(out))
+"""
 
 
 def _missing_tools() -> str | None:
@@ -231,6 +264,24 @@ def _agents(engine: Engine) -> dict[str, dict]:
     return {a["agent"]: a for a in engine.get_json("http://127.0.0.1:8000/agents")}
 
 
+def _prom(engine: Engine, query: str) -> dict[str, float]:
+    """A Prometheus instant query: value per scraped instance (host:port)."""
+    got = engine.get_json("http://127.0.0.1:9090/api/v1/query?query=" + query)
+    return {r["metric"]["instance"]: float(r["value"][1]) for r in got["data"]["result"]}
+
+
+def _ownership(compose: Compose) -> dict:
+    """Who owns what, read from Redis inside the api container (OWNERSHIP_PY)."""
+    (api,) = compose.containers("api")
+    r = compose.engine.docker("exec", api, "python", "-c", OWNERSHIP_PY, timeout=60)
+    return json.loads(r.stdout)
+
+
+def _live(own: dict) -> set[str]:
+    """Mappers that said they lived within a lease time (ownership.Ownership.live)."""
+    return {m for m, d in own["mappers"].items() if d["age_ms"] <= 1000 * LEASE_S}
+
+
 def _prepare(engine: Engine, tmp_path: Path) -> Path:
     """A copy of the project to build from, its deploy/wheelhouse filled from the cache
     and the base image imported (deploy/offline-base.sh, as a user would run it)."""
@@ -257,7 +308,7 @@ def _prepare(engine: Engine, tmp_path: Path) -> Path:
     return ctx
 
 
-def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
+def _run_deployment(engine: Engine, project: Path) -> None:
     compose = Compose(engine, project, "hivemaptest")
     timings: dict[str, float] = {}
     t = time.monotonic()
@@ -265,12 +316,20 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
         compose.run("build")
         timings["build"] = time.monotonic() - t
         t = time.monotonic()
-        compose.run("up", "-d", "--no-build", *(["--scale", f"mapper={mappers}"] * (mappers > 1)))
+        compose.run("up", "-d", "--no-build", "--scale", f"mapper={MAPPERS}",
+                    "--scale", f"placerec={PLACERECS}")  # fmt: skip
         wait_for(lambda: not _unhealthy(compose), 180, "every container healthy")
         services = {compose.inspect(c)["Config"]["Labels"]["com.docker.compose.service"]
                     for c in compose.containers()}  # fmt: skip
         assert services == {"zenohd", "redis", "mapper", "placerec", "optimizer", "api",
                             "prometheus"}, services  # fmt: skip
+        assert len(compose.containers("placerec")) == PLACERECS
+        # A mapper's id in the leases is its host name: the container's, unique per replica.
+        mapper_ids = {compose.inspect(c)["Config"]["Hostname"]: c
+                      for c in compose.containers("mapper")}  # fmt: skip
+        assert len(mapper_ids) == MAPPERS, mapper_ids
+        wait_for(lambda: _live(_ownership(compose)) == mapper_ids.keys(), 60,
+                 "both mappers live in Redis (hm:mappers)")  # fmt: skip
         timings["up_healthy"] = time.monotonic() - t
         t = time.monotonic()
 
@@ -304,18 +363,43 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
                 # one target per replica (the scaled services are found by DNS)
                 health = [(t["labels"]["job"], t["health"]) for t in got["data"]["activeTargets"]]
                 assert {j for j, _ in health} == {"mapper", "placerec", "optimizer", "api"}, health
-                assert sum(j == "mapper" for j, _ in health) == mappers, health
+                assert sum(j == "mapper" for j, _ in health) == MAPPERS, health
+                assert sum(j == "placerec" for j, _ in health) == PLACERECS, health
                 return all(h == "up" for _, h in health)
 
             wait_for(targets_up, 60, "every Prometheus target up")
+
+            # The agents went one to each mapper (hm:assign, least assigned first), and
+            # every live map is owned by a lease of a live mapper.
+            own = _ownership(compose)
+            print("ownership before the kill:", json.dumps(own))
+            assert set(own["assign"].values()) == mapper_ids.keys(), own["assign"]
+            assert own["maps"] and all(m["owner"] in _live(own) and m["token"] == m["fence"]
+                                       for m in own["maps"].values()), own  # fmt: skip
+
+            # The placerec pool: every member holds every keyframe (its database is
+            # replicated; the owner of a map alone queries it).
+            def both_placerecs_hold_keyframes():
+                db = _prom(engine, "hivemap_placerec_db_keyframes")
+                assert len(db) == PLACERECS and all(v > 0 for v in db.values()), db
+                return db
+
+            wait_for(both_placerecs_hold_keyframes, 30, "keyframes in both placerecs")
             timings["agents_seen"] = time.monotonic() - t
             t = time.monotonic()
 
-            # Item 3: kill -9 of the mapper's main process (PID 1 of its container).
-            (mapper,) = compose.containers("mapper")[:1]
+            # kill -9 of the main process (PID 1 of its container) of the mapper that owns
+            # the most maps: each map is owned again, and the restart policy brings it back.
+            held = {}
+            for m in own["maps"].values():
+                held[m["owner"]] = held.get(m["owner"], 0) + 1
+            victim_id = max(mapper_ids, key=lambda k: (held.get(k, 0), k))
+            mapper = mapper_ids[victim_id]
             before = compose.inspect(mapper)
             os.kill(before["State"]["Pid"], signal.SIGKILL)
+            t_kill = time.monotonic()
             kfs_at_kill = {k: v["n_kf"] for k, v in _agents(engine).items()}
+            fence_at_kill = {m: v["fence"] for m, v in own["maps"].items()}
 
             def restarted():
                 st = compose.inspect(mapper)
@@ -323,11 +407,31 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
                         and st["State"]["Pid"] != before["State"]["Pid"]
                         and st["State"].get("Health", {}).get("Status") == "healthy")  # fmt: skip
 
+            def owned_again():
+                # Taken over by the other mapper, or taken back by the restarted one
+                # (its host name, so its id, is the same) with a new fencing token; or,
+                # once two leases went by, held by the restarted one at all (it could
+                # only have asked before the old lease ran out, keeping the token).
+                got = _ownership(compose)
+                late = time.monotonic() - t_kill > 2 * LEASE_S and restarted()
+                ok = got["maps"] and all(
+                    m["owner"] in mapper_ids
+                    and (m["owner"] != victim_id or m["fence"] > fence_at_kill.get(k, 0) or late)
+                    for k, m in got["maps"].items()
+                )  # fmt: skip
+                return ok and got
+
+            got = wait_for(owned_again, 60, "every map owned again after the kill", every=0.5)
+            timings["maps_owned_again"] = time.monotonic() - t_kill
+            print(f"maps owned again {timings['maps_owned_again']:.1f} s after the kill of "
+                  f"{victim_id}:", json.dumps(got["maps"]))  # fmt: skip
             wait_for(restarted, 90, "the restart policy bringing the mapper back, healthy")
             assert agents.poll() is None, "the agents landed before the mapper was back"
-            timings["mapper_back"] = time.monotonic() - t
+            timings["mapper_back"] = time.monotonic() - t_kill
+            wait_for(lambda: _live(_ownership(compose)) == mapper_ids.keys(), 30,
+                     "both mappers live again")  # fmt: skip
             wait_for(lambda: all(v["n_kf"] > kfs_at_kill[k] for k, v in _agents(engine).items()),
-                     60, "keyframes accepted after the mapper's restart")  # fmt: skip
+                     60, "keyframes accepted after the kill")  # fmt: skip
 
             # Every keyframe of both agents acked, those sent while it was down included.
             out, _ = agents.communicate(timeout=180)
@@ -341,6 +445,13 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
         for st in stats:
             assert st["all_acked"], st
         timings["agents_done"] = time.monotonic() - t
+        # Still one owner per live map, a live one, after the agents landed.
+        own = _ownership(compose)
+        print("ownership at the end:", json.dumps(own))
+        print("per mapper instance:", {q: _prom(engine, q) for q in (
+            "hivemap_mapper_maps_owned", "hivemap_mapper_takeovers", "hivemap_mapper_handovers",
+            "hivemap_mapper_fenced_writes")})  # fmt: skip
+        assert all(m["owner"] in _live(own) for m in own["maps"].values()), own
     except BaseException:
         print(compose.logs())
         raise
@@ -358,13 +469,7 @@ def _run_deployment(engine: Engine, project: Path, mappers: int) -> None:
 
 
 @pytest.mark.timeout(1800)
-@pytest.mark.parametrize(
-    "mappers",
-    [1, pytest.param(2, marks=pytest.mark.skip(
-        reason="issue 20 (mapper scale-out): two mappers would both take every agent's "
-               "keyframes until the scale-out issue shards agents across them"))],
-)  # fmt: skip
-def test_compose_up_offline(tmp_path, mappers):
+def test_compose_up_offline(tmp_path):
     why = _missing_tools()
     if why:
         pytest.skip(why)
@@ -374,7 +479,7 @@ def test_compose_up_offline(tmp_path, mappers):
             engine.start()
         except RuntimeError as e:
             pytest.skip(f"dockerd cannot start here: {e}")
-        _run_deployment(engine, _prepare(engine, tmp_path), mappers)
+        _run_deployment(engine, _prepare(engine, tmp_path))
     finally:
         pid = engine.dockerd_pid
         engine.stop()
