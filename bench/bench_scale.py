@@ -6,8 +6,13 @@ keyframes are those the place recognizers took in.
 
     .venv/bin/python bench/bench_scale.py [--agents 6] [--frames 900:1500] [--speed 2]
 
-Mappers are not scaled here: the mapper does not take map leases yet (README, "From
-one box to a cluster").
+Mappers (issue 20 items 1 and 7): ``--teams`` runs three teams of ``--per-team``
+simulated agents in three worlds, first with one mapper, then with three mappers and two
+placerecs (``--mappers 1,3``; ``--repeat N`` runs each N times, for the run-to-run
+spread), and reports per mapper instance its CPU, keyframes, maps, hand-overs and
+takeovers, and per team its map and joint ATE.
+
+    .venv/bin/python bench/bench_scale.py --teams --per-team 4 --frames 900:1500 --speed 2
 """
 
 from __future__ import annotations
@@ -180,11 +185,17 @@ def main() -> int:
         help="three teams of --per-team agents, 1 mapper vs 3 mappers + 2 placerecs",
     )
     ap.add_argument("--per-team", type=int, default=4)
+    ap.add_argument("--mappers", default="1,3",
+                    help="with --teams: the runs, by mappers (1: one of each; 3: three "
+                         "mappers + 2 placerecs)")  # fmt: skip
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="with --teams: each run this many times (run-to-run spread)")  # fmt: skip
     args = ap.parse_args()
     load0 = os.getloadavg()
     if args.teams:
-        runs = [run_teams(sc, args.per_team, args.frames, args.speed)
-                for sc in (Scale(1, 1, 1), Scale(3, 2, 1))]  # fmt: skip
+        scales = {1: Scale(1, 1, 1), 3: Scale(3, 2, 1)}
+        runs = [run_teams(scales[int(m)], args.per_team, args.frames, args.speed)
+                for m in args.mappers.split(",") for _ in range(args.repeat)]  # fmt: skip
         rows = [{"scale": r["scale"], **m} for r in runs for m in r["mappers"]]
         print(table(rows, ["scale", "instance", "cpu_s", "keyframes", "cpu_ms_per_kf",
                            "maps_owned", "takeovers", "handovers"]))  # fmt: skip

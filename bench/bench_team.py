@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
 from bench_flight import flight_metrics  # noqa: E402
-from common import table, write_report  # noqa: E402
+from common import scrape, table, write_report  # noqa: E402
 from plots import aligned_trajectories, trajectories  # noqa: E402
 
 from services.team_cli import run_team  # noqa: E402
@@ -171,6 +171,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
     holder: dict = {}
 
     def attach(stack) -> None:
+        holder["stack"] = stack
         holder["rec"] = Recorder(stack.zenoh_endpoint)
         time.sleep(0.5)
 
@@ -178,8 +179,14 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
     # they run at lower priority and the server gets the CPU it would have alone.
     from services.launcher import Scale
 
-    doc = run_team(Settings(), sources, out, feedback=feedback, on_stack=attach,
-                   settle_timeout=180, agent_nice=10, scale=Scale(mappers=mappers))  # fmt: skip
+    scale = Scale(mappers=mappers)
+    try:  # kept up to read each mapper's metrics, then stopped here
+        doc = run_team(Settings(), sources, out, feedback=feedback, on_stack=attach,
+                       settle_timeout=180, agent_nice=10, scale=scale, keep=True)  # fmt: skip
+        instances = mapper_instances(doc["stack"], scale)
+    finally:
+        if "stack" in holder:
+            holder["stack"].stop()
     rec: Recorder = holder["rec"]
     rec.close()
     seq_of = {name: seq for name, seq, _ in sources}
@@ -214,6 +221,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         "trajectories": aligned_trajectories(server),
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
         "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())), "flight": flight,
+        "mappers": instances,
         "camera": camera, "inject": {k: v for k, v in os.environ.items()
                                      if k.startswith("HIVEMAP_INJECT__")}, "out": str(out),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
@@ -221,6 +229,29 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
                          "chunks", "corrections", "corrections_held", "foreign_points")}
                         for a, v in doc["agents"].items()},
     }  # fmt: skip
+
+
+def mapper_instances(stack, scale) -> list[dict]:
+    """Per mapper instance at the end of a run: keyframes it stored, maps it owns, maps
+    it took over from a dead owner, maps it handed to another owner for a merge, merges
+    it ran, writes its fencing refused (how the work split over several mappers)."""
+    from services.launcher import service_plan
+
+    plan = {p.name: p for p in service_plan(stack.settings, scale)}
+    out = []
+    for c in stack.children:
+        if not c.name.startswith("mapper"):
+            continue
+        m = scrape(f"http://127.0.0.1:{plan[c.name].http_port}/metrics")
+        out.append({"instance": c.name, "restarts": c.restarts, **{
+            k: m.get(name, 0.0) for k, name in (
+                ("keyframes", 'hivemap_stored_total{service="mapper",kind="keyframe"}'),
+                ("maps_owned", "hivemap_mapper_maps_owned"),
+                ("takeovers", "hivemap_mapper_takeovers"),
+                ("handovers", "hivemap_mapper_handovers"),
+                ("merges", "hivemap_map_merges_total"),
+                ("fenced_writes", "hivemap_mapper_fenced_writes"))}})  # fmt: skip
+    return out
 
 
 def _pcts(a: np.ndarray) -> dict:
@@ -299,6 +330,9 @@ def main() -> int:
           for n, r in runs.items() for a, m in r.get("flight", {}).items()]  # fmt: skip
     if fl:
         print(table(fl, list(fl[0])))
+    mp = [{"run": n, **m} for n, r in runs.items() for m in r["mappers"]]
+    if mp:
+        print(table(mp, list(mp[0])))
     print(f"written {path}")
     print(json.dumps({n: r["n_maps"] for n, r in runs.items()}))
     return 0
