@@ -27,6 +27,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_flight import flight_metrics  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.feedback import frame_correction  # noqa: E402
@@ -115,12 +118,15 @@ def main() -> int:
 
         rec = a["vo"]["reported"]
         again = replay(a)
-        e = np.array([err(a["vo"]["T"]), err(rec), err(replay(a, current))])
+        cur = replay(a, current)
+        e = np.array([err(a["vo"]["T"]), err(rec), err(cur)])
         sums += e
-        rows.append((ag, *e, float(np.abs(again - rec).max())))
-    print(f"{'agent':8} {'vo_mm':>7} {'recorded_mm':>12} {'current_mm':>11} {'replay_check':>13}")
-    for ag, v, r, c, d in rows:
-        print(f"{ag:8} {1e3 * v:7.2f} {1e3 * r:12.2f} {1e3 * c:11.2f} {d:13.1e}")
+        fl = flight_metrics(Trajectory(st, cur), Trajectory(st, a["vo"]["T"]), gt)
+        rows.append((ag, *e, fl["max_own_jump_5cm_m"], float(np.abs(again - rec).max())))
+    print(f"{'agent':8} {'vo_mm':>7} {'recorded_mm':>12} {'current_mm':>11} "
+          f"{'own_jump>5cm_m':>15} {'replay_check':>13}")  # fmt: skip
+    for ag, v, r, c, j, d in rows:
+        print(f"{ag:8} {1e3 * v:7.2f} {1e3 * r:12.2f} {1e3 * c:11.2f} {j:15.3f} {d:13.1e}")
     print(f"{'sum':8} {1e3 * sums[0]:7.2f} {1e3 * sums[1]:12.2f} {1e3 * sums[2]:11.2f}")
     return 0
 
