@@ -6,8 +6,10 @@ image source (``producer_vo.VOProducer``) or the feature-level simulated agent
 
 - pacing by the frames' timestamps (``speed``: 1 = real time, 0 = as fast as possible)
   and, for a live camera (``drop_when_behind``), dropping the frames that arrived while
-  the previous one was being tracked -- what a camera driver does -- counted in
-  ``dropped_frames`` and ``hivemap_agent_frames_dropped_total``;
+  the previous one was being tracked -- what a camera driver does: the tracker always
+  takes the newest frame there is, so a frame is dropped only when a newer one is both
+  due and delivered (a camera that delivers late is not a reason to drop the frame it
+  has) -- counted in ``dropped_frames`` and ``hivemap_agent_frames_dropped_total``;
 - the communication module (CCM-SLAM §4.5) built from ``settings.comm`` (rate, message
   size cap, resend timeout) and live poses at ``comm.pose_rate_hz``;
 - acks and the server's map chunks, handled in one place (``_on_message``): a chunk's
@@ -78,7 +80,10 @@ class Producer(Protocol):
 
     def bind(self, comm: CommModule, stats: AgentStats) -> None: ...
 
-    def frames(self) -> Iterable[Frame]: ...
+    def frames(self) -> Iterable[Frame]:
+        """The frames in order. A live camera's iterator may have ``ready()``: whether
+        its next frame is delivered already (taken from it without waiting); without
+        it, the next frame is always there."""
 
     def step(self, frame: Frame) -> Step: ...
 
@@ -250,13 +255,14 @@ class AgentLoop:
         clock = _Clock(self.speed)
         lost_since = None
         st = self.stats
-        for fr in self.producer.frames():
+        frames = _Lookahead(self.producer.frames())
+        for fr in frames:
             if self._stop.is_set():
                 break
             due = clock.due(fr.stamp_ns)
             if due is not None:
-                now = time.monotonic()
-                if self.drop_when_behind and now > due + clock.period:
+                nxt = frames.peek() if self.drop_when_behind else None
+                if nxt is not None and clock.at(nxt.stamp_ns) <= time.monotonic():
                     # A newer frame has arrived meanwhile: a camera driver keeps only the
                     # newest, so this one is gone.
                     st.dropped_frames += 1
@@ -293,6 +299,7 @@ class AgentLoop:
                 self.kf_ref, self.T_l_ref = s.kf_ref, s.T_l_ref
             self._publish_pose(s)
             self._service(0.0)
+        frames.close()
         st.flight_s = time.monotonic() - t_start
         if feedback_dump.enabled() and self.vo_poses:
             feedback_dump.record(self.agent, "vo", stamps=np.array([t for t, _ in self.vo_poses]),
@@ -437,4 +444,43 @@ class _Clock:
         if self.last is not None and stamp_ns > self.last:
             self.period = (stamp_ns - self.last) * 1e-9 / self.speed
         self.last = stamp_ns
+        return self.at(stamp_ns)
+
+    def at(self, stamp_ns: int) -> float:
+        """When a frame with this stamp is due (after the first frame set the clock)."""
         return self.t0 + (stamp_ns - self.stamp0) * 1e-9 / self.speed
+
+
+class _Lookahead:
+    """Frames with a look at the next one, if it is there without waiting for it."""
+
+    def __init__(self, frames: Iterable[Frame]) -> None:
+        self._it = iter(frames)
+        self._ready = getattr(frames, "ready", None)
+        self._next: list[Frame] = []  # the frame taken by peek()
+        self._done = False
+
+    def __iter__(self) -> _Lookahead:
+        return self
+
+    def __next__(self) -> Frame:
+        if self._next:
+            return self._next.pop()
+        return next(self._it)
+
+    def close(self) -> None:
+        close = getattr(self._it, "close", None)
+        if close is not None:
+            close()
+
+    def peek(self) -> Frame | None:
+        if self._next:
+            return self._next[0]
+        if self._done or (self._ready is not None and not self._ready()):
+            return None
+        try:
+            self._next.append(next(self._it))
+        except StopIteration:
+            self._done = True
+            return None
+        return self._next[0]
