@@ -99,14 +99,14 @@ class Extractor:
             z = np.zeros((0, 2))
             return Features(z.astype(np.float32), np.zeros(0, np.uint8),
                             np.zeros((0, DESCRIPTOR_BYTES), np.uint8), z)  # fmt: skip
-        kp = np.array([k.pt for k in kps], np.float32)
+        kp = cv2.KeyPoint_convert(kps).reshape(-1, 2)  # float32, as k.pt (~1 ms less)
         octv = np.array([k.octave for k in kps], np.uint8)
         return Features(kp, octv, desc, self.cam.undistort_points(kp))
 
     def _spread(self, kps, shape) -> list:
         gx, gy = self.grid
         h, w = shape
-        pts = np.array([k.pt for k in kps])
+        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float64)
         resp = np.array([k.response for k in kps])
         cell = (np.minimum(pts[:, 1] * gy // h, gy - 1) * gx
                 + np.minimum(pts[:, 0] * gx // w, gx - 1)).astype(int)  # fmt: skip

@@ -208,9 +208,9 @@ def test_realtime_drops_frames_when_the_tracker_is_slow():
     agent = Agent(Settings(), "slow", src, use_server=False, realtime=True)
     track = agent.vo.track
 
-    def slow_track(img, stamp):
+    def slow_track(img, stamp, **kw):
         t = time.monotonic()
-        r = track(img, stamp)
+        r = track(img, stamp, **kw)
         time.sleep(max(0.0, 3 * period - (time.monotonic() - t)))
         return r
 

@@ -73,6 +73,12 @@ class Step:
 class Frame:
     stamp_ns: int
     data: Any = None  # the image (real VO) or nothing (the simulation keeps its own)
+    # A live camera that paces and drops frames itself (see runner._Camera): when this
+    # frame was due, the frames it dropped since the last one it delivered, and the
+    # seconds it spent on the frame for the agent (feature extraction).
+    due: float | None = None
+    dropped: int = 0
+    work_s: float = 0.0
 
 
 class Producer(Protocol):
@@ -260,14 +266,17 @@ class AgentLoop:
             if self._stop.is_set():
                 break
             due = clock.due(fr.stamp_ns)
+            if fr.due is not None:
+                due = fr.due
+            if fr.dropped:
+                self._dropped(fr.dropped)
             if due is not None:
                 nxt = frames.peek() if self.drop_when_behind else None
-                if nxt is not None and clock.at(nxt.stamp_ns) <= time.monotonic():
+                nxt_due = None if nxt is None else nxt.due or clock.at(nxt.stamp_ns)
+                if nxt_due is not None and nxt_due <= time.monotonic():
                     # A newer frame has arrived meanwhile: a camera driver keeps only the
                     # newest, so this one is gone.
-                    st.dropped_frames += 1
-                    self.health.frames_dropped += 1
-                    AGENT_FRAMES_DROPPED.labels(self.agent).inc()
+                    self._dropped(1)
                     continue
                 while (now := time.monotonic()) < due:
                     self._service(due - now)
@@ -277,7 +286,7 @@ class AgentLoop:
             # camera would have dropped; with it, the drops above are the real ones.
             late = None if self.drop_when_behind else due
             self.health.frame(time.monotonic(), late, clock.period or None)
-            st.track_s.append(s.track_s)
+            st.track_s.append(s.track_s + fr.work_s)
             self._state = s.state
             if s.T_l_c is not None:
                 self.vo_poses.append((s.stamp_ns, s.T_l_c))
@@ -312,6 +321,11 @@ class AgentLoop:
         if self._reporter is not None:
             self._reporter.stop()
         return self._finish(t_start)
+
+    def _dropped(self, n: int) -> None:
+        self.stats.dropped_frames += n
+        self.health.frames_dropped += n
+        AGENT_FRAMES_DROPPED.labels(self.agent).inc(n)
 
     def _flushing(self) -> bool:
         """After the last frame: keep going while a server may still take our data."""

@@ -12,7 +12,8 @@ after it have triangulated against it (its associations are final then), with on
 keypoints that have a map point; each new point goes with its reference keyframe; after
 a local BA, the keyframes' new relative poses and the points that moved by more than
 ``comm.mp_update_rel`` of their depth, as updates. Live (``realtime``), local BA runs in
-a process of its own (``vo/ba_worker.py``) and images are read on a camera thread.
+a process of its own (``vo/ba_worker.py``), and images are read and their ORB features
+extracted on camera threads (``_Camera``) while the tracker works on the frame before.
 
 The VO runs in its own frame ``l`` and is never moved. What the agent reports as its
 pose is the VO pose mapped through the latest correction from the server
@@ -29,6 +30,7 @@ from __future__ import annotations
 import json
 import queue
 import threading
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -36,6 +38,7 @@ import numpy as np
 
 from shared.geometry import se3_inv
 from shared.messages import KeyframeUpdate, MapChunk, MapPoints, NewKeyframe
+from shared.orb import Features
 from shared.settings import Settings
 from shared.trajectory import Trajectory, format_tum
 
@@ -78,10 +81,13 @@ class VOProducer:
     def frames(self) -> Iterable[Frame]:
         if not self.live:
             return (Frame(f.stamp_ns, f.image) for f in self.source)
-        return _Camera(self.source)
+        return _Camera(self.source, self.vo.extract)
 
     def step(self, frame: Frame) -> Step:
-        r = self.vo.track(frame.data, frame.stamp_ns)
+        if isinstance(frame.data, Features):  # extracted by the camera thread
+            r = self.vo.track(None, frame.stamp_ns, features=frame.data)
+        else:
+            r = self.vo.track(frame.data, frame.stamp_ns)
         s = Step(r.stamp_ns, r.T_w_c, r.state, T_pred=r.T_pred, track_s=r.track_s,
                  map_s=r.map_s)  # fmt: skip
         if r.keyframe is not None:
@@ -348,47 +354,107 @@ class _Camera:
     """A live camera's frames. It delivers decoded images: reading and decoding them (a
     few ms a frame, more when the synthetic world renders one) is the camera's work,
     done on a thread of its own (OpenCV releases the GIL) a few frames ahead.
-    ``ready()``: a frame is delivered and waiting (the agent loop drops a frame when
-    a newer one is there and due)."""
 
-    def __init__(self, source: ImageSource, ahead: int = 4) -> None:
-        self._q: queue.Queue = queue.Queue(maxsize=ahead)
+    With ``extract`` the agent's feature extraction runs here too, on a second thread,
+    while the tracker works on the previous frame (half the tracking path's time was
+    ORB extraction: profiled on MH02, ~15 of ~27 ms a frame). That thread never looks
+    ahead of the clock: it takes each frame at its timestamp (paced from the first
+    frame), skips a frame whose successor is due already, and hands the tracker the
+    newest extracted frame; one the tracker did not take before a newer one was ready
+    is dropped. Each frame then says when it was due and how many were dropped before
+    it. ``ready()``: a frame is delivered and waiting."""
+
+    def __init__(self, source: ImageSource, extract=None, ahead: int = 4) -> None:
+        self._raw: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
         self._done = object()
         self._source = source
-        self._thread = threading.Thread(target=self._read, name="camera", daemon=True)
-        self._thread.start()
+        self._extract = extract
+        self._box: list = []  # the extracted frame waiting for the tracker; then the end
+        self._cv = threading.Condition()
+        threading.Thread(target=self._read, name="camera", daemon=True).start()
+        if extract is not None:
+            threading.Thread(target=self._front, name="camera-features", daemon=True).start()
 
     def _read(self) -> None:
         try:
             for f in self._source:
                 while not self._stop.is_set():
                     try:
-                        self._q.put((f.stamp_ns, f.image), timeout=0.1)
+                        self._raw.put((f.stamp_ns, f.image), timeout=0.1)
                         break
                     except queue.Full:
                         continue
                 if self._stop.is_set():
                     return
-            self._q.put(self._done)
+            self._raw.put(self._done)
         except BaseException as e:  # the source's error reaches the agent's thread
-            self._q.put(e)
+            self._raw.put(e)
+
+    def _deliver(self, item) -> None:
+        with self._cv:
+            if isinstance(item, Frame) and self._box and isinstance(self._box[-1], Frame):
+                old = self._box.pop()  # not taken in time: a newer frame replaces it
+                item.dropped += 1 + old.dropped
+            self._box.append(item)
+            self._cv.notify()
+
+    def _front(self) -> None:
+        t0 = stamp0 = None
+        dropped = 0
+        item = self._raw.get()
+        while not self._stop.is_set():
+            if item is self._done or isinstance(item, BaseException):
+                self._deliver(item)
+                return
+            stamp, img = item
+            if t0 is None:
+                t0, stamp0 = time.monotonic(), stamp
+            due = t0 + (stamp - stamp0) * 1e-9
+            while (wait := due - time.monotonic()) > 0 and not self._stop.is_set():
+                time.sleep(min(wait, 0.1))
+            try:
+                nxt = self._raw.get_nowait()
+            except queue.Empty:
+                nxt = None
+            if isinstance(nxt, tuple) and t0 + (nxt[0] - stamp0) * 1e-9 <= time.monotonic():
+                dropped += 1  # its successor is due already
+                item = nxt
+                continue
+            t = time.perf_counter()
+            feats = self._extract(img)
+            fr = Frame(stamp, feats, due, dropped, time.perf_counter() - t)
+            dropped = 0
+            self._deliver(fr)
+            item = self._raw.get() if nxt is None else nxt
 
     def ready(self) -> bool:
-        return not self._q.empty()
+        if self._extract is None:
+            return not self._raw.empty()
+        with self._cv:
+            return bool(self._box)
 
     def __iter__(self) -> _Camera:
         return self
 
     def __next__(self) -> Frame:
-        item = self._q.get()
-        if item is self._done:
-            self._q.put(item)  # the end stays the end
+        if self._extract is None:
+            item = self._raw.get()
+        else:
+            with self._cv:
+                while not self._box:
+                    self._cv.wait()
+                item = self._box.pop(0)
+        if item is self._done:  # the end stays the end
+            if self._extract is None:
+                self._raw.put(item)
+            else:
+                self._deliver(item)
             raise StopIteration
         if isinstance(item, BaseException):
             self.close()
             raise item
-        return Frame(*item)
+        return item if isinstance(item, Frame) else Frame(*item)
 
     def close(self) -> None:
         self._stop.set()

@@ -97,14 +97,17 @@ class VisualOdometry:
         self.ba_applied: list[tuple[list[int], list[int]]] = []
 
     # --- public -----------------------------------------------------------------------------
-    def track(self, img: np.ndarray, stamp_ns: int) -> FrameResult:
+    def track(self, img: np.ndarray | None, stamp_ns: int,
+              features: Features | None = None) -> FrameResult:  # fmt: skip
+        """Track one image, or its ``features`` when they were extracted already (the
+        live agent extracts on its camera thread, while the previous frame is tracked)."""
         t0 = time.perf_counter()
         if self.last_stamp is not None and stamp_ns > self.last_stamp:
             dt = (stamp_ns - self.last_stamp) * 1e-9
             self.dt_ratio = float(np.clip(dt / self.p.nominal_dt_s, self.p.dt_ratio_min,
                                           self.p.dt_ratio_max))  # fmt: skip
         self.last_stamp = stamp_ns
-        f = self.extract(img)
+        f = self.extract(img) if features is None else features
         step = self._initialize if self.state == "init" else self._track
         res = step(f, stamp_ns)
         res.track_s = time.perf_counter() - t0 - res.map_s
