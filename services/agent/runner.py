@@ -399,10 +399,19 @@ class _Camera:
             self._box.append(item)
             self._cv.notify()
 
+    def _take(self):
+        """The next decoded frame; the end once the camera is closed."""
+        while not self._stop.is_set():
+            try:
+                return self._raw.get(timeout=0.1)
+            except queue.Empty:
+                continue
+        return self._done
+
     def _front(self) -> None:
         t0 = stamp0 = None
         dropped = 0
-        item = self._raw.get()
+        item = self._take()
         while not self._stop.is_set():
             if item is self._done or isinstance(item, BaseException):
                 self._deliver(item)
@@ -426,7 +435,7 @@ class _Camera:
             fr = Frame(stamp, feats, due, dropped, time.perf_counter() - t)
             dropped = 0
             self._deliver(fr)
-            item = self._raw.get() if nxt is None else nxt
+            item = self._take() if nxt is None else nxt
 
     def ready(self) -> bool:
         if self._extract is None:
