@@ -225,8 +225,11 @@ def test_realtime_drops_frames_when_the_tracker_is_slow():
     assert stats.dropped_frames >= 0.5 * len(src), stats.dropped_frames
     assert counter._value.get() - before == stats.dropped_frames
     # Never more than the frame in hand behind: 60 frames at 3 periods each without
-    # dropping would end 120 periods late.
-    assert max(stats.latency_s) < 5 * period, max(stats.latency_s)
+    # dropping would end 120 periods late. Bounded by the newest frame's age when the
+    # tracker takes it (a period, plus its extraction on the camera thread) and the 3
+    # periods of tracking, ~4-5 periods; a loaded machine slows the extraction (seen:
+    # 10 periods at load 16), so the bound is a sixth of where no dropping would end.
+    assert max(stats.latency_s) < 20 * period, max(stats.latency_s)
     assert stats.to_dict()["dropped_frames"] == stats.dropped_frames
 
 
