@@ -24,18 +24,8 @@ before acknowledging, or one paused past ``claim_idle_s`` that resumes. So the r
 carries the job id and the mapper applies a job's correction once
 (:meth:`JobQueue.mark_applied`, ``SET NX``).
 
-Keys (prefix ``hm:opt``):
-
-    hm:opt:jobs           STREAM  entries {map, data: encoded OptimizeRequest}; group
-                                  "optimizers"; an entry is deleted once acknowledged
-    hm:opt:latest         HASH    map -> id of its newest job (an older one is stale)
-    hm:opt:restarts       HASH    map -> runs of it abandoned in a row for a newer copy
-    hm:opt:taken          HASH    consumer -> jobs it took (claims included)
-    hm:opt:workers        HASH    consumer -> unix ms it last said it was alive (every
-                                  claim_idle_s / 4; for people and tests, nothing relies
-                                  on it)
-    hm:opt:applied:{job}  STR     set once by the mapper that applied the job's correction;
-                                  expires after a day
+Keys: ``hm:opt:*`` (the stream, the newest job per map, restarts, per-consumer counts,
+the applied marks), laid out in ``shared/store.py``.
 """
 
 from __future__ import annotations
@@ -49,14 +39,12 @@ from dataclasses import dataclass
 
 import redis
 
+from shared import store
+
 log = logging.getLogger(__name__)
 
-P = "hm:opt"
-K_JOBS = f"{P}:jobs"
-K_LATEST = f"{P}:latest"
-K_RESTARTS = f"{P}:restarts"
-K_TAKEN = f"{P}:taken"
-K_WORKERS = f"{P}:workers"
+K_JOBS, K_LATEST, K_RESTARTS = store.K_OPT_JOBS, store.K_OPT_LATEST, store.K_OPT_RESTARTS
+K_TAKEN, K_WORKERS = store.K_OPT_TAKEN, store.K_OPT_WORKERS
 GROUP = "optimizers"
 APPLIED_TTL_S = 86400
 
@@ -67,10 +55,6 @@ if #p == 0 or p[1][2] ~= ARGV[2] then return 0 end
 redis.call('XCLAIM', KEYS[1], ARGV[1], ARGV[2], 0, ARGV[3], 'JUSTID')
 return 1
 """
-
-
-def k_applied(job: str) -> str:
-    return f"{P}:applied:{job}"
 
 
 def stream_id(job: str) -> tuple[int, int]:
@@ -124,7 +108,7 @@ class JobQueue:
 
     def mark_applied(self, job: str) -> bool:
         """True the first time ``job``'s correction is applied, False after."""
-        return bool(self.r.set(k_applied(job), b"1", nx=True, ex=APPLIED_TTL_S))
+        return bool(self.r.set(store.k_opt_applied(job), b"1", nx=True, ex=APPLIED_TTL_S))
 
     # --- worker side -------------------------------------------------------------------
     def ensure_group(self) -> None:

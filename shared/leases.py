@@ -22,11 +22,8 @@ must be atomic (``GET``-then-``SET`` from Python would let two instances both be
 they took a map). Everything here is Redis's own atomicity; no clock of ours is trusted
 beyond the lease time being much longer than a round trip.
 
-Keys (``{m}`` map id; a Redis Cluster keeps one map's keys on one shard if map keys use
-the hash tag ``{m}``, see the README):
-
-    hm:lease:{m}    STR  "owner token", expires after the lease time unless renewed
-    hm:fence:{m}    STR  the map's fencing counter: the token of its latest taking
+Keys: ``hm:lease:{m}`` (STR "owner token", expires after the lease time unless renewed)
+and ``hm:fence:{m}`` (the map's fencing counter), laid out in ``shared/store.py``.
 """
 
 from __future__ import annotations
@@ -38,15 +35,9 @@ from dataclasses import dataclass
 
 import redis
 
+from shared.store import k_fence, k_lease
+
 log = logging.getLogger(__name__)
-
-
-def k_lease(map_id: str) -> str:
-    return f"hm:lease:{map_id}"
-
-
-def k_fence(map_id: str) -> str:
-    return f"hm:fence:{map_id}"
 
 
 class Fenced(Exception):

@@ -37,13 +37,40 @@ matrices little-endian float64 row-major):
                                    frame into q's (the pose graph's loop edges)
     hm:poses                 PUBSUB channel of live poses (msgpack LivePose), for the
                                    API's WebSocket
-    hm:opt:*                 the optimization job queue the optimizer pool reads (a
-                                   stream with a consumer group): its keys are laid out
-                                   in ``shared/jobs.py``, beside the protocol that uses them
-    hm:lease:{m}, hm:fence:{m}  map ownership leases and fencing tokens: laid out in
-                                   ``shared/leases.py``, beside the scripts that use them
-    hm:mappers, hm:handover:{m}  live mappers with their load, and hand-over requests:
-                                   ``services/mapper/ownership.py``
+
+Keys of the protocols that coordinate through the same Redis: each is built here (the
+``k_*`` functions and ``K_*`` names below) and used by the module named, which explains
+the protocol.
+
+Map ownership (``shared/leases.py``; a Redis Cluster keeps one map's keys on one shard
+if map keys use the hash tag ``{m}``, see the README):
+
+    hm:lease:{m}             STR   "owner token", expires after the lease time unless
+                                   renewed
+    hm:fence:{m}             STR   the map's fencing counter: the token of its latest
+                                   taking
+
+Several mappers (``services/mapper/ownership.py``):
+
+    hm:mappers               HASH  mapper id -> JSON {t: unix ms, agents, maps}: live
+                                   mappers and their load, rewritten every renewal
+    hm:assign                HASH  new agent -> the mapper it was assigned to
+    hm:assigned              HASH  mapper id -> agents assigned to it
+    hm:handover:{m}          STR   the mapper id that asked for map m; expires after 10
+                                   leases
+
+The optimization job queue the optimizer pool reads (``shared/jobs.py``):
+
+    hm:opt:jobs              STREAM entries {map, data: encoded OptimizeRequest}; group
+                                   "optimizers"; an entry is deleted once acknowledged
+    hm:opt:latest            HASH  map -> id of its newest job (an older one is stale)
+    hm:opt:restarts          HASH  map -> runs of it abandoned in a row for a newer copy
+    hm:opt:taken             HASH  consumer -> jobs it took (claims included)
+    hm:opt:workers           HASH  consumer -> unix ms it last said it was alive (every
+                                   claim_idle_s / 4; for people and tests, nothing
+                                   relies on it)
+    hm:opt:applied:{job}     STR   set once by the mapper that applied the job's
+                                   correction; expires after a day
 
 A batch of keyframes and map points goes in one MULTI/EXEC transaction (the writers
 take the caller's ``pipeline()``), so a mapper killed mid-write leaves either all of it
@@ -72,6 +99,32 @@ MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,
 def _k(*parts: object) -> str:
     """``hm:part:part...``: every key of the layout above is built here."""
     return ":".join((_P, *map(str, parts)))
+
+
+# Map ownership (shared/leases.py).
+def k_lease(map_id: str) -> str:
+    return _k("lease", map_id)
+
+
+def k_fence(map_id: str) -> str:
+    return _k("fence", map_id)
+
+
+# Several mappers (services/mapper/ownership.py).
+K_MAPPERS, K_ASSIGN, K_ASSIGNED = _k("mappers"), _k("assign"), _k("assigned")
+
+
+def k_handover(map_id: str) -> str:
+    return _k("handover", map_id)
+
+
+# The optimization job queue (shared/jobs.py).
+K_OPT_JOBS, K_OPT_LATEST, K_OPT_RESTARTS = (_k("opt", x) for x in ("jobs", "latest", "restarts"))
+K_OPT_TAKEN, K_OPT_WORKERS = _k("opt", "taken"), _k("opt", "workers")
+
+
+def k_opt_applied(job: str) -> str:
+    return _k("opt", "applied", job)
 
 
 def _f8(b: bytes | None, shape: tuple[int, ...]) -> np.ndarray | None:

@@ -17,7 +17,7 @@ from pathlib import Path
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.agent.sim_runner import SimAgentRunner
 from shared.leases import Leases
-from shared.store import Store, connect
+from shared.store import K_MAPPERS, Store, connect
 from shared.trajectory import Trajectory, load_euroc_gt
 
 HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
@@ -70,7 +70,7 @@ def test_three_mappers_share_agents_fail_over_and_fence(settings, tmp_path):
     runners, threads, results = [], [], {}
     stop = threading.Event()
     try:
-        assert _wait(lambda: r.hlen("hm:mappers") == 3, 60), \
+        assert _wait(lambda: r.hlen(K_MAPPERS) == 3, 60), \
             {n: m.log.read_text()[-800:] for n, m in mappers.items()}  # fmt: skip
         # Three agents on three stretches of MH01, far enough apart not to need a merge
         # (no placerec runs here), started one by one so each goes to the least loaded.
@@ -160,7 +160,7 @@ def test_a_match_across_two_owners_hands_one_map_over_and_merges(settings, tmp_p
     runners, threads, results = [], [], {}
     stop = threading.Event()
     try:
-        assert _wait(lambda: r.hlen("hm:mappers") == 2, 60)
+        assert _wait(lambda: r.hlen(K_MAPPERS) == 2, 60)
         for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
             gt = load_euroc_gt(seq)
             sim = SimAgent(Trajectory(gt.stamps_ns[:900], gt.poses[:900]), world,

@@ -33,13 +33,8 @@ the owner of the map with the smaller id asks for the other (``hm:handover:{m}``
 owner drains the map's queued batches, releases the lease and drops the map; the asker
 takes it, loads it from Redis and applies the match as if both had been its own.
 
-Keys (beside ``shared/leases.py``'s ``hm:lease:{m}``, ``hm:fence:{m}``):
-
-    hm:mappers        HASH  mapper id -> JSON {t: unix ms, agents, maps}: live mappers
-                            and their load, rewritten every renewal
-    hm:assign         HASH  new agent -> the mapper it was assigned to
-    hm:assigned       HASH  mapper id -> agents assigned to it
-    hm:handover:{m}   STR   the mapper id that asked for map m; expires after 10 leases
+Keys (``hm:mappers``, ``hm:assign``, ``hm:assigned``, ``hm:handover:{m}``; and
+``shared/leases.py``'s): laid out in ``shared/store.py``.
 """
 
 from __future__ import annotations
@@ -49,13 +44,9 @@ import logging
 import time
 
 from shared.leases import Leases
-from shared.store import Store
+from shared.store import K_ASSIGN, K_ASSIGNED, K_MAPPERS, Store, k_handover
 
 log = logging.getLogger(__name__)
-
-K_MAPPERS = "hm:mappers"
-K_ASSIGN = "hm:assign"
-K_ASSIGNED = "hm:assigned"
 
 # KEYS: assign, assigned, mappers. ARGV: agent, now ms, live window ms.
 _ASSIGN = """
@@ -77,10 +68,6 @@ redis.call('HSET', KEYS[1], ARGV[1], best)
 redis.call('HINCRBY', KEYS[2], best, 1)
 return best
 """
-
-
-def k_handover(map_id: str) -> str:
-    return f"hm:handover:{map_id}"
 
 
 class Ownership:
