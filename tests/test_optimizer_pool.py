@@ -7,64 +7,33 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import pytest
 from feeding import feed_mapper as _feed
+from procs import ServiceProcess, sim_agent, wait_until
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.agent.sim_agent import LandmarkWorld
 from services.mapper.service import MapperService
 from shared.jobs import K_JOBS, JobQueue
 from shared.metrics import sample_value
 from shared.settings import Settings
 from shared.store import connect
-from shared.trajectory import Trajectory, load_euroc_gt
 
-HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
 CLAIM_IDLE_S = 2.0
+_wait = partial(wait_until, step=0.02)
 
 
-def _wait(cond, timeout: float, step: float = 0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = cond()
-        if v:
-            return v
-        time.sleep(step)
-    return None
-
-
-class Worker:
-    def __init__(self, settings: Settings, tmp: Path, name: str) -> None:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
-        env.update({
-            "HIVEMAP_REDIS_URL": settings.redis_url,
-            "HIVEMAP_ZENOH__CONNECT": f'["{settings.zenoh.connect[0]}"]',
-            "HIVEMAP_OPTIMIZER__CLAIM_IDLE_S": str(CLAIM_IDLE_S),
-            # Long enough a run that the test catches it mid-job.
-            "HIVEMAP_OPTIMIZER__BA_MAX_ITERATIONS": "200",
-            "HIVEMAP_OPTIMIZER__BA_TIME_BUDGET_S": "3",
-            "HIVEMAP_OPTIMIZER__NICE": "0",
-            "HIVEMAP_LOG_JSON": "false",
-        })  # fmt: skip
-        self.log = tmp / f"{name}.log"
-        self._err = open(self.log, "w")  # noqa: SIM115
-        self.proc = subprocess.Popen([HIVEMAP, "optimizer"], env=env,
-                                     stdout=self._err, stderr=subprocess.STDOUT)  # fmt: skip
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGCONT)
-            self.proc.terminate()
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._err.close()
+def _worker(settings: Settings, tmp: Path, name: str) -> ServiceProcess:
+    return ServiceProcess("optimizer", settings, tmp, name, env={
+        "HIVEMAP_OPTIMIZER__CLAIM_IDLE_S": str(CLAIM_IDLE_S),
+        # Long enough a run that the test catches it mid-job.
+        "HIVEMAP_OPTIMIZER__BA_MAX_ITERATIONS": "200",
+        "HIVEMAP_OPTIMIZER__BA_TIME_BUDGET_S": "3",
+        "HIVEMAP_OPTIMIZER__NICE": "0",
+    })  # fmt: skip
 
 
 def _consumers(r) -> dict[int, str]:
@@ -85,13 +54,10 @@ def _duplicates(map_id: str) -> float:
 @pytest.fixture()
 def stack(settings, tmp_path):
     """A map of one simulated agent stored in Redis, a mapper serving it, two workers."""
-    gt = load_euroc_gt("MH01")
-    sim = SimAgent(Trajectory(gt.stamps_ns[:600], gt.poses[:600]), LandmarkWorld(0),
-                   drift=DriftModel(), seed=3)  # fmt: skip
-    _feed(MapperService(settings), "A", sim)
+    _feed(MapperService(settings), "A", sim_agent(LandmarkWorld(0), "MH01", slice(600), seed=3))
     mapper = MapperService(settings)
     mapper.start()  # rebuilds the map from Redis, takes corrections over Zenoh
-    workers = [Worker(settings, tmp_path, f"opt{i}") for i in range(2)]
+    workers = [_worker(settings, tmp_path, f"opt{i}") for i in range(2)]
     r = connect(settings.redis_url)
     try:
         assert _wait(lambda: len(_consumers(r)) == 2, 60), \
@@ -104,7 +70,7 @@ def stack(settings, tmp_path):
         r.close()
 
 
-def _holder(r, workers: list[Worker], taken_before: int) -> Worker:
+def _holder(r, workers: list[ServiceProcess], taken_before: int) -> ServiceProcess:
     """The worker that holds the one pending job and has started on it."""
     q = JobQueue(r)
     pend = _wait(lambda: sum(q.taken().values()) > taken_before and q.pending(), 30)
@@ -139,7 +105,7 @@ def test_a_killed_worker_leaves_its_job_to_another_and_it_is_applied_once(settin
 
     # 2. A worker paused past its claim and resumed runs the job a second time; the
     # mapper applies the job's correction once.
-    workers.append(Worker(settings, tmp, "opt2"))
+    workers.append(_worker(settings, tmp, "opt2"))
     assert _wait(lambda: len(_consumers(r)) == 2 and victim.proc.pid not in _consumers(r), 60)
     assert mapper.collab.request(map_id, "loop") is not None
     paused = _holder(r, [w for w in workers if w.proc.poll() is None], 2)

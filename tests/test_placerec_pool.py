@@ -7,29 +7,15 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
-import threading
 import time
-from pathlib import Path
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
-from services.agent.sim_runner import SimAgentRunner
+from procs import ServiceProcess, fly_two_agents, wait_until
+
+from services.agent.sim_agent import LandmarkWorld
 from services.mapper.service import MapperService
 from services.placerec.service import PlacerecService
 from shared.members import Members, rendezvous
 from shared.transport import open_session
-
-HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
-
-
-def _wait(cond, timeout: float, step: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
 
 
 def test_rendezvous_moves_only_the_keys_of_a_member_that_leaves():
@@ -46,23 +32,19 @@ def test_rendezvous_moves_only_the_keys_of_a_member_that_leaves():
 
 
 def test_a_member_killed_with_kill_9_leaves_every_view(settings, tmp_path):
-    env = {k: v for k, v in os.environ.items() if not k.startswith("HIVEMAP_")}
-    env.update({"HIVEMAP_REDIS_URL": settings.redis_url, "HIVEMAP_LOG_JSON": "false",
-                "HIVEMAP_ZENOH__CONNECT": f'["{settings.zenoh.connect[0]}"]'})  # fmt: skip
-    with open(tmp_path / "placerec.log", "w") as log:
-        proc = subprocess.Popen([HIVEMAP, "placerec"], env=env, stdout=log,
-                                stderr=subprocess.STDOUT)  # fmt: skip
+    placerec = ServiceProcess("placerec", settings, tmp_path, "placerec")
+    proc = placerec.proc
     s1, s2 = open_session(settings.zenoh), open_session(settings.zenoh)
     try:
         a, b = Members(s1, "placerec", "a"), Members(s2, "placerec", "b")
-        assert _wait(lambda: len(a.live()) == 3 and len(b.live()) == 3, 60), (
-            a.live(), (tmp_path / "placerec.log").read_text()[-1500:])  # fmt: skip
+        assert wait_until(lambda: len(a.live()) == 3 and len(b.live()) == 3, 60), (
+            a.live(), placerec.log.read_text()[-1500:])  # fmt: skip
         (other,) = set(a.live()) - {"a", "b"}
         assert b.live() == a.live()
         os.kill(proc.pid, signal.SIGKILL)
         t0 = time.monotonic()
         proc.wait(10)
-        assert _wait(lambda: a.live() == ["a", "b"] == b.live(), 10), (a.live(), b.live())
+        assert wait_until(lambda: a.live() == ["a", "b"] == b.live(), 10), (a.live(), b.live())
         gone_s = time.monotonic() - t0
         print(f"member {other} left every view {gone_s:.2f} s after kill -9")
         assert gone_s < 5
@@ -70,11 +52,9 @@ def test_a_member_killed_with_kill_9_leaves_every_view(settings, tmp_path):
         for k in (f"map-{i}" for i in range(50)):
             assert a.owner(k) == b.owner(k) in ("a", "b")
         a.close()
-        assert _wait(lambda: b.live() == ["b"], 10)
+        assert wait_until(lambda: b.live() == ["b"], 10)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        placerec.close()
         s1.close()
         s2.close()
 
@@ -82,32 +62,18 @@ def test_a_member_killed_with_kill_9_leaves_every_view(settings, tmp_path):
 def test_two_placerecs_store_everything_and_query_each_map_once(settings):
     """Two agents start in one place (the world of test_collab_services): the pool of
     two placerecs finds the merge; each keyframe was queried by its map's owner only."""
-    from shared.trajectory import Trajectory, load_euroc_gt
-
     world = LandmarkWorld(0)
     mapper = MapperService(settings)
     pool = [PlacerecService(settings), PlacerecService(settings)]
     for s in (mapper, *pool):
         s.start()
     try:
-        assert _wait(lambda: all(len(p.members.live()) == 2 for p in pool), 30)
-        runners = []
-        for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
-            gt = load_euroc_gt(seq)
-            sim = SimAgent(Trajectory(gt.stamps_ns[:900], gt.poses[:900]), world,
-                           drift=DriftModel(), seed=20 + i)  # fmt: skip
-            runners.append(SimAgentRunner(settings, agent, sim, speed=4.0))
-        results: dict = {}
-        threads = [threading.Thread(target=lambda r=r: results.setdefault(r.agent, r.run()))
-                   for r in runners]  # fmt: skip
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(120)
+        assert wait_until(lambda: all(len(p.members.live()) == 2 for p in pool), 30)
+        results, _ = fly_two_agents(settings, world)
         assert all(results[a].all_acked for a in "AB")
-        assert _wait(lambda: len(mapper.maps) == 1, 30), "the pool never merged the maps"
+        assert wait_until(lambda: len(mapper.maps) == 1, 30), "the pool never merged the maps"
         # Every member holds every keyframe (replicated database)...
-        assert _wait(lambda: len(pool[0].rec.db) == len(pool[1].rec.db) > 0, 20)
+        assert wait_until(lambda: len(pool[0].rec.db) == len(pool[1].rec.db) > 0, 20)
         assert set(pool[0].rec.kfs) == set(pool[1].rec.kfs)
         live = pool[0].members.live()
         # ...and queried only the keyframes of the maps it owns, each once in the pool.

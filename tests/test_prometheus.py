@@ -24,7 +24,7 @@ from live_stack import add_sim_agents, get_json, live_stack, metrics_ports, wait
 
 from services import dashboards
 from shared import keys
-from shared.redis_server import free_port
+from shared.redis_server import free_port, stop_process
 from shared.settings import ZenohSettings
 from shared.transport import open_session
 
@@ -77,12 +77,7 @@ class Prometheus:
         return float(res[0]["value"][1]) if res else math.nan
 
     def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        stop_process(self.proc, 10)
 
 
 def _finite_points(data: dict) -> int:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from services.launcher import RESTART_MAX_S, RESTART_MIN_S, STABLE_S, restart_delay
-from shared.redis_server import free_port
+from shared.redis_server import free_port, stop_process
 
 HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
 
@@ -104,13 +104,7 @@ class Up:
         return out
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        stop_process(self.proc, 30)
         self._err.close()
 
 
