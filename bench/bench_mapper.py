@@ -19,7 +19,6 @@ import argparse
 import contextlib
 import json
 import os
-import random
 import subprocess
 import sys
 import tempfile
@@ -145,7 +144,7 @@ def run_latency(
 
 
 def run_scale() -> dict:
-    from test_server_map import _feed, _server_traj
+    from feeding import feed_handler, server_traj
 
     from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
     from services.mapper.registration import AgentHandler, MapperParams
@@ -156,8 +155,8 @@ def run_scale() -> dict:
     res = {}
     for on in (False, True):
         h = AgentHandler("A", 1, ServerMap("m"), params=MapperParams(scale_correction=on))
-        vo = _feed(h, SimAgent(gt, world, drift=DriftModel(scale_drift_per_s=0.02), seed=2))
-        res["on" if on else "off"] = ate(_server_traj(h), gt).rmse
+        vo = feed_handler(h, SimAgent(gt, world, drift=DriftModel(scale_drift_per_s=0.02), seed=2))
+        res["on" if on else "off"] = ate(server_traj(h), gt).rmse
     res["vo"] = ate(vo, gt).rmse
     res["ratio_off_over_on"] = res["off"] / res["on"]
     res["pass"] = res["ratio_off_over_on"] >= 3
@@ -165,31 +164,24 @@ def run_scale() -> dict:
 
 
 def run_redundancy() -> dict:
-    from test_server_map import _feed, _server_traj
+    from feeding import cull, feed_handler, server_traj, twice
 
     from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
-    from services.mapper.redundancy import find_redundant
     from services.mapper.registration import AgentHandler
     from services.mapper.server_map import ServerMap
 
     gt = load_euroc_gt("MH01")
-    dt = gt.stamps_ns[-1] - gt.stamps_ns[0] + 50_000_000
-    two = Trajectory(np.concatenate([gt.stamps_ns, gt.stamps_ns + dt]),
-                     np.concatenate([gt.poses, gt.poses]))  # fmt: skip
+    two = twice(gt, gt.stamps_ns[-1] - gt.stamps_ns[0] + 50_000_000)
     h = AgentHandler("A", 1, ServerMap("m"))
-    _feed(h, SimAgent(two, LandmarkWorld(0), drift=DriftModel(), seed=5))
+    feed_handler(h, SimAgent(two, LandmarkWorld(0), drift=DriftModel(), seed=5))
     stamps = {k.id: k.stamp_ns for k in h.smap.kfs.values()}
-    before = ate(_server_traj(h), two).rmse
+    before = ate(server_traj(h), two).rmse
     n0 = len(h.smap.kfs)
-    rng = random.Random(0)
-    for _ in range(3000):
-        for g in find_redundant(h.smap, rng, {h.kf_gid(h.latest_kf)}):
-            h.on_removed(h.smap.kfs[g])
-            h.smap.remove_keyframe(g)
+    cull(h, 3000)
     ids = sorted(stamps)
     full = Trajectory(np.array([stamps[i] for i in ids]), np.stack([h.kf_pose(i) for i in ids]))
     after = ate(full, two).rmse
-    kept = ate(_server_traj(h), two).rmse
+    kept = ate(server_traj(h), two).rmse
     frac = 1 - len(h.smap.kfs) / n0
     change = abs(after - before) / before
     return {"keyframes": n0, "culled_fraction": frac, "ate_before": before, "ate_after": after,

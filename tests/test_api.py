@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from feeding import feed
 
-from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.api.main import create_app
 from services.mapper.service import MapperService
@@ -31,19 +31,13 @@ def filled(redis_url):
         gt = load_euroc_gt(seq)
         sim = SimAgent(Trajectory(gt.stamps_ns[900:1200], gt.poses[900:1200]), world,
                        drift=DriftModel.zero())  # fmt: skip
-        comm = CommModule(agent, rate_hz=1e9)
-        t = 0.0
-        while not sim.done:
-            stamp, T_l_c, kf = sim.step()
-            if kf is None:
-                continue
-            comm.add_keyframe(kf.kf)
-            comm.add_map_points(kf.new_mps)
-            msg = comm.next_message(t, 0, kf.kf.id)
-            ack = m.process_kf_bytes(keys.agent_kf(agent), msg.encode(), 0)
-            comm.on_ack(ack, t)
-            t += 1
+
+        def apply(msg, t, step, agent=agent):
+            stamp, T_l_c, kf = step
             last[agent] = (stamp, T_l_c, kf.kf.id, kf.kf.T_l_kf)
+            return m.process_kf_bytes(keys.agent_kf(agent), msg.encode(), 0)
+
+        feed(agent, sim, apply)
         stamp, T_l_c, kid, T_l_kf = last[agent]
         p = PoseUpdate(agent, stamp, T_l_c, kid, se3_inv(T_l_kf) @ T_l_c)
         m.process_pose_bytes(keys.agent_pose(agent), p.encode(), 0)

@@ -3,17 +3,13 @@ pose refinement and scale correction, fusion and redundant-keyframe rejection.""
 
 from __future__ import annotations
 
-import random
-
 import numpy as np
 import pytest
+from feeding import cull, feed_handler, server_traj, twice
 
-from services.agent.comm import CommModule
 from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
-from services.mapper.redundancy import find_redundant
 from services.mapper.registration import AgentHandler, MapperParams
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint
-from shared.messages import Ack
 from shared.trajectory import Trajectory, ate, load_euroc_gt
 
 
@@ -56,33 +52,6 @@ def test_graph_bookkeeping_add_fuse_remove():
     assert (0, 2, "tree") in m.essential_edges()
 
 
-def _feed(handler: AgentHandler, sim: SimAgent):
-    """Drive a sim agent straight into a handler (one batch per keyframe)."""
-    comm = CommModule(sim_id := handler.agent, rate_hz=1e9)
-    est = {}
-    t = 0.0
-    while not sim.done:
-        _, _, kf = sim.step()
-        if kf is None:
-            continue
-        comm.add_keyframe(kf.kf)
-        comm.add_map_points(kf.new_mps)
-        est[kf.kf.id] = (kf.kf.stamp_ns, kf.kf.T_l_kf)
-        res = handler.ingest(comm.next_message(t, 0, kf.kf.id), t)
-        handler.fuse_new()
-        comm.on_ack(Ack(sim_id, "m", np.array(res.ack_kf_ids, np.int64),
-                        np.array(res.ack_mp_ids, np.int64), 0, 0), t)  # fmt: skip
-        t += 1.0
-    vo = Trajectory(np.array([est[i][0] for i in sorted(est)]),
-                    np.stack([est[i][1] for i in sorted(est)]))  # fmt: skip
-    return vo
-
-
-def _server_traj(h: AgentHandler) -> Trajectory:
-    kfs = sorted((k for k in h.smap.kfs.values() if k.agent == h.agent), key=lambda k: k.id)
-    return Trajectory(np.array([k.stamp_ns for k in kfs]), np.stack([k.T_m_kf for k in kfs]))
-
-
 def test_scale_correction_keeps_drifting_agent_consistent(world):
     gt = load_euroc_gt("MH01")
     gt = Trajectory(gt.stamps_ns[:2000], gt.poses[:2000])
@@ -90,8 +59,8 @@ def test_scale_correction_keeps_drifting_agent_consistent(world):
     out = {}
     for on in (False, True):
         h = AgentHandler("A", 1, ServerMap("m"), params=MapperParams(scale_correction=on))
-        vo = _feed(h, SimAgent(gt, world, drift=drift, seed=2))
-        out[on] = ate(_server_traj(h), gt).rmse
+        vo = feed_handler(h, SimAgent(gt, world, drift=drift, seed=2))
+        out[on] = ate(server_traj(h), gt).rmse
         assert h.smap.check_invariants() == []
     assert out[True] * 3 <= out[False], out
     assert ate(vo, gt).rmse > out[True]
@@ -101,31 +70,26 @@ def test_refined_server_trajectory_no_worse_than_vo(world):
     gt = load_euroc_gt("MH02")
     gt = Trajectory(gt.stamps_ns[300:1500], gt.poses[300:1500])
     h = AgentHandler("A", 1, ServerMap("m"))
-    vo = _feed(h, SimAgent(gt, world, drift=DriftModel(), seed=4))
-    assert ate(_server_traj(h), gt).rmse <= ate(vo, gt).rmse * 1.001
+    vo = feed_handler(h, SimAgent(gt, world, drift=DriftModel(), seed=4))
+    assert ate(server_traj(h), gt).rmse <= ate(vo, gt).rmse * 1.001
 
 
 def test_redundant_keyframes_culled_on_second_lap(world):
     """An agent flying its path twice: the second lap's keyframes see nothing new."""
     gt = load_euroc_gt("MH01")
     a, b = 400, 1600
-    dt = gt.stamps_ns[b] - gt.stamps_ns[a] + 50_000_000
-    two = Trajectory(np.concatenate([gt.stamps_ns[a:b], gt.stamps_ns[a:b] + dt]),
-                     np.concatenate([gt.poses[a:b], gt.poses[a:b]]))  # fmt: skip
+    two = twice(Trajectory(gt.stamps_ns[a:b], gt.poses[a:b]),
+                gt.stamps_ns[b] - gt.stamps_ns[a] + 50_000_000)  # fmt: skip
     h = AgentHandler("A", 1, ServerMap("m"))
-    _feed(h, SimAgent(two, world, drift=DriftModel(), seed=5))
+    feed_handler(h, SimAgent(two, world, drift=DriftModel(), seed=5))
     _stamps = [k.stamp_ns for k in sorted(h.smap.kfs.values(), key=lambda k: k.id)]
-    before = ate(_server_traj(h), two).rmse
+    before = ate(server_traj(h), two).rmse
     n0 = len(h.smap.kfs)
-    rng = random.Random(0)
-    for _ in range(400):
-        for g in find_redundant(h.smap, rng, {h.kf_gid(h.latest_kf)}):
-            h.on_removed(h.smap.kfs[g])
-            h.smap.remove_keyframe(g)
-    kept = ate(_server_traj(h), two).rmse
+    cull(h, 400)
+    kept = ate(server_traj(h), two).rmse
     # The trajectory a user gets keeps culled keyframes through their anchors (as
     # ORB-SLAM keeps culled keyframes relative to their parents).
-    full = _server_traj(h)
+    full = server_traj(h)
     culled = sorted(h.removed)
     T_c = np.stack([h.kf_pose(i) for i in culled])
     stamps = {k: s for k, s in zip(range(len(_stamps)), _stamps, strict=True)}
