@@ -49,6 +49,14 @@ def zenoh_router():
         session.close()
 
 
+@pytest.fixture(scope="module")
+def world():
+    """The landmark world of seed 0 the simulated agents fly in (one per test module)."""
+    from services.agent.sim_agent import LandmarkWorld
+
+    return LandmarkWorld(0)
+
+
 @pytest.fixture()
 def settings(redis_url, zenoh_router) -> Settings:
     return Settings(

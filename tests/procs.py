@@ -63,11 +63,16 @@ class ServiceProcess:
         self._out.close()
 
 
+def gt_part(seq: str, a: int | None, b: int | None) -> Trajectory:
+    """Frames ``a:b`` of ``seq``'s ground truth."""
+    gt = load_euroc_gt(seq)
+    return Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
+
+
 def sim_agent(world: LandmarkWorld, seq: str, frames: slice, seed: int) -> SimAgent:
     """A simulated agent with drift flying ``frames`` of ``seq``'s ground truth."""
-    gt = load_euroc_gt(seq)
-    return SimAgent(Trajectory(gt.stamps_ns[frames], gt.poses[frames]), world,
-                    drift=DriftModel(), seed=seed)  # fmt: skip
+    return SimAgent(gt_part(seq, frames.start, frames.stop), world, drift=DriftModel(),
+                    seed=seed)  # fmt: skip
 
 
 def fly(runner, results: dict) -> threading.Thread:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from feeding import feed_mapper as _feed
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.agent.sim_agent import DriftModel, SimAgent
 from services.mapper.merge import fuse_matched, move_map
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint, digest
 from services.mapper.service import MapperService
@@ -19,11 +19,6 @@ from shared.messages import CorrectionMsg, Match, OptimizeRequest
 from shared.settings import Settings
 from shared.store import Store, connect
 from shared.trajectory import Trajectory, load_euroc_gt
-
-
-@pytest.fixture(scope="module")
-def world() -> LandmarkWorld:
-    return LandmarkWorld(0)
 
 
 def _kf(g: int, mp: list[int], T: np.ndarray) -> ServerKeyframe:

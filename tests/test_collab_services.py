@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from procs import fly_two_agents, wait_until
 
-from services.agent.sim_agent import LandmarkWorld
 from services.mapper.service import MapperService
 from services.optimizer.service import OptimizerService
 from services.placerec.service import PlacerecService
@@ -25,11 +24,6 @@ from shared.trajectory import Trajectory
 from shared.transport import Bus, open_session
 
 GARBAGE = [b"", b"\x00\x01", b"\xc1" * 40, packb({"schema": "hivemap.match/9"}), packb([1])]
-
-
-@pytest.fixture(scope="module")
-def world() -> LandmarkWorld:
-    return LandmarkWorld(0)
 
 
 @pytest.fixture()

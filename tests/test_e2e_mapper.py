@@ -16,8 +16,9 @@ import time
 
 import numpy as np
 import pytest
+from procs import gt_part
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.agent.sim_agent import DriftModel, SimAgent
 from services.agent.sim_runner import SimAgentRunner
 from services.mapper.service import MapperService
 from shared import keys
@@ -25,18 +26,7 @@ from shared.messages import packb
 from shared.metrics import sample_value
 from shared.settings import InjectSettings, Settings
 from shared.store import Store, connect
-from shared.trajectory import Trajectory, load_euroc_gt
 from shared.transport import Bus, open_session
-
-
-@pytest.fixture(scope="module")
-def world() -> LandmarkWorld:
-    return LandmarkWorld(0)
-
-
-def _gt(seq: str, a: int, b: int) -> Trajectory:
-    gt = load_euroc_gt(seq)
-    return Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
 
 
 @pytest.fixture()
@@ -66,7 +56,7 @@ def _run_agent(settings, agent, sim, **kw):
 
 
 def test_zero_noise_trajectory_equals_ground_truth(settings, mapper, world):
-    gt = _gt("MH01", 900, 1700)
+    gt = gt_part("MH01", 900, 1700)
     stats = _run_agent(settings, "A", SimAgent(gt, world, drift=DriftModel.zero()))
     assert stats.all_acked and stats.keyframes > 30
     ids, stamps, T_m = Store(connect(settings.redis_url)).trajectory("A")
@@ -81,7 +71,7 @@ def test_zero_noise_trajectory_equals_ground_truth(settings, mapper, world):
 
 @pytest.mark.chain_only
 def test_noisy_trajectory_equals_agent_chained_estimate(settings, mapper, world):
-    gt = _gt("MH02", 600, 1400)
+    gt = gt_part("MH02", 600, 1400)
     drift = DriftModel(rot_deg_per_sqrt_m=0.5, trans_m_per_sqrt_m=0.05, scale_drift_per_s=0.01)
     sim = SimAgent(gt, world, drift=drift, seed=3)
     runner = SimAgentRunner(settings, "N", sim, speed=0)
@@ -108,7 +98,7 @@ def test_noisy_trajectory_equals_agent_chained_estimate(settings, mapper, world)
 
 def test_twenty_percent_loss_every_keyframe_stored(settings, mapper, world):
     # 2x real time, both runs paced alike so their byte counts compare.
-    gt = _gt("MH03", 300, 900)
+    gt = gt_part("MH03", 300, 900)
     clean = _run_agent(settings, "C", SimAgent(gt, world, drift=DriftModel.zero(), seed=1),
                        speed=2.0)  # fmt: skip
     lossy_settings = settings.model_copy(update={"inject": InjectSettings(drop=0.2, seed=5)})
@@ -146,7 +136,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_service_keeps_serving(
     before = rejected(kf_key), rejected(pose_key)
     agent_labels = {"service": "agent", "key": ack_key, "reason": "invalid"}
     agent_before = sample_value("hivemap_messages_rejected_total", agent_labels)
-    good = _gt("MH01", 1000, 1300)
+    good = gt_part("MH01", 1000, 1300)
     valid = SimAgentRunner(settings, "G", SimAgent(good, world, drift=DriftModel.zero()), 2.0)
     result = {}
     t = threading.Thread(target=lambda: result.setdefault("stats", valid.run()))
@@ -195,7 +185,7 @@ def _start_mapper_proc(settings: Settings) -> subprocess.Popen:
 
 
 def test_kill_9_mapper_loses_no_acked_keyframe(settings, world):
-    gt = _gt("MH01", 900, 3000)
+    gt = gt_part("MH01", 900, 3000)
     s = settings.model_copy(
         update={"comm": settings.comm.model_copy(update={"resend_timeout_s": 1.0})}
     )

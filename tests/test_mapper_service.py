@@ -14,8 +14,9 @@ import time
 
 import numpy as np
 import pytest
+from procs import gt_part
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.agent.sim_agent import DriftModel, SimAgent
 from services.agent.sim_runner import SimAgentRunner
 from services.mapper import persist
 from services.mapper.registration import MapperParams
@@ -25,18 +26,7 @@ from shared import keys
 from shared.geometry import Sim3, se3_inv
 from shared.messages import packb, unpackb
 from shared.store import Store, connect
-from shared.trajectory import Trajectory, load_euroc_gt
 from shared.transport import Bus, open_session
-
-
-@pytest.fixture(scope="module")
-def world() -> LandmarkWorld:
-    return LandmarkWorld(0)
-
-
-def _gt(seq: str, a: int, b: int) -> Trajectory:
-    gt = load_euroc_gt(seq)
-    return Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
 
 
 def _mapper_proc(settings) -> subprocess.Popen:
@@ -74,9 +64,9 @@ def test_kill_9_with_two_agents_restores_maps_exactly(settings, world):
     proc = _mapper_proc(settings)
     stop = threading.Event()
     runners = [
-        SimAgentRunner(settings, "P", SimAgent(_gt("MH01", 900, 3000), world, seed=1), 4.0,
+        SimAgentRunner(settings, "P", SimAgent(gt_part("MH01", 900, 3000), world, seed=1), 4.0,
                        stop=stop, flush_timeout_s=1),
-        SimAgentRunner(settings, "Q", SimAgent(_gt("MH02", 700, 2800), world, seed=2), 4.0,
+        SimAgentRunner(settings, "Q", SimAgent(gt_part("MH02", 700, 2800), world, seed=2), 4.0,
                        stop=stop, flush_timeout_s=1),
     ]  # fmt: skip
     threads = [threading.Thread(target=r.run) for r in runners]
@@ -123,11 +113,11 @@ def test_frozen_and_garbage_agent_does_not_delay_the_others(settings, world):
     results: dict[str, object] = {}
     try:
         runners = {
-            "A": SimAgentRunner(settings, "A", SimAgent(_gt("MH01", 900, 1400), world, seed=1),
+            "A": SimAgentRunner(settings, "A", SimAgent(gt_part("MH01", 900, 1400), world, seed=1),
                                 1.0),
-            "B": SimAgentRunner(settings, "B", SimAgent(_gt("MH02", 700, 1200), world, seed=2),
+            "B": SimAgentRunner(settings, "B", SimAgent(gt_part("MH02", 700, 1200), world, seed=2),
                                 1.0),
-            "C": SimAgentRunner(settings, "C", SimAgent(_gt("MH03", 300, 2000), world, seed=3),
+            "C": SimAgentRunner(settings, "C", SimAgent(gt_part("MH03", 300, 2000), world, seed=3),
                                 1.0, stop=stop_c, flush_timeout_s=0),
         }  # fmt: skip
         threads = [threading.Thread(target=lambda a=a, r=r: results.__setitem__(a, r.run()))
@@ -170,7 +160,7 @@ def test_concurrent_writers_keep_map_invariants(settings, world):
     m = MapperService(s)
     m.start()
     seqs = {"X": ("MH01", 500), "Y": ("MH02", 400), "Z": ("MH03", 300)}
-    gts = {a: _gt(q, i, i + 1300) for a, (q, i) in seqs.items()}
+    gts = {a: gt_part(q, i, i + 1300) for a, (q, i) in seqs.items()}
     T_w_m = gts["X"].poses[0]
     for a, gt in gts.items():
         # Each agent's local frame is its first camera; place all in X's frame.

@@ -4,18 +4,12 @@ pose refinement and scale correction, fusion and redundant-keyframe rejection.""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from feeding import cull, feed_handler, server_traj, twice
 
-from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
+from services.agent.sim_agent import DriftModel, SimAgent
 from services.mapper.registration import AgentHandler, MapperParams
 from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint
 from shared.trajectory import Trajectory, ate, load_euroc_gt
-
-
-@pytest.fixture(scope="module")
-def world() -> LandmarkWorld:
-    return LandmarkWorld(0)
 
 
 def _kf(g: int, mp: list[int]) -> ServerKeyframe:
