@@ -31,7 +31,9 @@ def test_still_camera_blurs_nothing(renderer):
     assert np.abs(sharp.astype(int) - still.astype(int)).mean() < 1.0
 
 
-def test_motion_blur_smears_along_the_motion(renderer):
+def _sharp_and_exposed(renderer, shutter: Shutter) -> tuple[np.ndarray, np.ndarray]:
+    """Frame 900 of MH03 at its timestamp's pose, and exposed through ``shutter`` for
+    0.15 s along the motion."""
     gt = load_euroc_gt("MH03")
     k = 900
 
@@ -39,7 +41,12 @@ def test_motion_blur_smears_along_the_motion(renderer):
         return interpolate_pose(gt, gt.stamps_ns[k] * 1e-9 + tau)
 
     sharp, _ = renderer.render(gt.poses[k], k)
-    blurred, _ = renderer.render_exposure(pose_at, 0.15, k, Shutter(blur=0.5))
+    exposed, _ = renderer.render_exposure(pose_at, 0.15, k, shutter)
+    return sharp, exposed
+
+
+def test_motion_blur_smears_along_the_motion(renderer):
+    sharp, blurred = _sharp_and_exposed(renderer, Shutter(blur=0.5))
     assert abs(float(blurred.mean()) - float(sharp.mean())) < 3  # light is conserved
     assert _sharpness(blurred) < 0.6 * _sharpness(sharp)
     # Centred on the timestamp: the blurred frame still lines up with the sharp one.
@@ -50,14 +57,7 @@ def test_motion_blur_smears_along_the_motion(renderer):
 
 
 def test_rolling_shutter_shears_rows(renderer):
-    gt = load_euroc_gt("MH03")
-    k = 900
-
-    def pose_at(tau: float) -> np.ndarray:
-        return interpolate_pose(gt, gt.stamps_ns[k] * 1e-9 + tau)
-
-    glob, _ = renderer.render(gt.poses[k], k)
-    rs, _ = renderer.render_exposure(pose_at, 0.15, k, Shutter(rolling=1.0))
+    glob, rs = _sharp_and_exposed(renderer, Shutter(rolling=1.0))
     d = np.abs(glob.astype(int) - rs.astype(int))
     # The middle row is read at the timestamp; the first and last rows are not.
     h = glob.shape[0]

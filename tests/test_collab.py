@@ -104,6 +104,16 @@ def _joint_rigid_error(svc, gts, agents) -> float:
     return float(np.linalg.norm(S.apply(P) - G, axis=1).max())
 
 
+def _fly_on(svc, sims, gts, agent: str, seq: str, a: int, b: int) -> None:
+    """``agent``, which flew frames 0:a of ``seq``, flies on to frame b, fed to ``svc``."""
+    gt = load_euroc_gt(seq)
+    more = Trajectory(gt.stamps_ns[a:b], gt.poses[a:b])
+    gts[agent] = Trajectory(gt.stamps_ns[0:b], gt.poses[0:b])
+    sims[agent].traj = Trajectory(np.concatenate([sims[agent].traj.stamps_ns, more.stamps_ns]),
+                                  np.concatenate([sims[agent].traj.poses, more.poses]))  # fmt: skip
+    _feed(svc, agent, sims[agent])
+
+
 def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, world):
     settings = Settings(redis_url=redis_url)
     svc = MapperService(settings)
@@ -144,12 +154,7 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     assert Store(connect(redis_url)).maps() == [smap.map_id]
 
     # After the merge B keeps registering into the common map, at the common scale.
-    gt = load_euroc_gt("MH02")
-    more = Trajectory(gt.stamps_ns[700:900], gt.poses[700:900])
-    gts["B"] = Trajectory(gt.stamps_ns[0:900], gt.poses[0:900])
-    sims["B"].traj = Trajectory(np.concatenate([sims["B"].traj.stamps_ns, more.stamps_ns]),
-                                np.concatenate([sims["B"].traj.poses, more.poses]))  # fmt: skip
-    _feed(svc, "B", sims["B"])
+    _fly_on(svc, sims, gts, "B", "MH02", 700, 900)
     assert _joint_rigid_error(svc, gts, "AB") < 1e-6
 
 
@@ -186,12 +191,7 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     assert corr.job == job.id
     corr = CorrectionMsg.decode(corr.encode())
     # A keyframe that arrived during the optimization is carried along (CCM-SLAM Fig. 4).
-    gt = load_euroc_gt("MH01")
-    more = Trajectory(gt.stamps_ns[700:760], gt.poses[700:760])
-    gts["A"] = Trajectory(gt.stamps_ns[0:760], gt.poses[0:760])
-    sims["A"].traj = Trajectory(np.concatenate([sims["A"].traj.stamps_ns, more.stamps_ns]),
-                                np.concatenate([sims["A"].traj.poses, more.poses]))  # fmt: skip
-    _feed(svc, "A", sims["A"])
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 760)
     assert svc.collab.on_correction(corr) is True
     # The same job's correction again (a second worker ran it): applied once.
     assert svc.collab.on_correction(corr) is False
