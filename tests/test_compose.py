@@ -14,12 +14,13 @@ run inside the compose network and are assigned one to each mapper; GET /agents 
 both with moving poses and Prometheus has every replica's target up (through the
 published ports 8000 and 9090, from inside the namespace); every server map is owned by
 a lease of a live mapper, and both placerecs hold the keyframes (replicated database).
-Then a `kill -9` of the main process of the mapper owning the most maps: each of its
-maps is owned again (the other mapper takes it over, or the restarted one takes it back
-with a new fencing token), the restart policy brings it back, both mappers are live
-again and the agents' keyframes keep being acked to the end; `down -v` and the engine's
-shutdown leave nothing behind. One stack, scaled: a second one would cost the suite
-another two minutes.
+The agents fly the same place, so their maps merge across the two owners (one is handed
+over through Redis). Then a `kill -9` of the main process of the merged map's owner:
+the map is owned again (the other mapper takes it over, or the restarted one takes it
+back with a new fencing token), the restart policy brings the container back, both
+mappers are live again and the agents' keyframes keep being acked to the end; `down -v`
+and the engine's shutdown leave nothing behind. One stack, scaled: a second one would
+cost the suite another two minutes.
 """
 
 from __future__ import annotations
@@ -61,9 +62,7 @@ LEASE_S = 3.0  # mapper.lease_s, the default compose runs with
 # the live mappers, the agents' assignments and every live map's lease and fencing token.
 OWNERSHIP_PY = """
 import json, os, time
-from services.mapper.ownership import K_ASSIGN, K_MAPPERS
-from shared.leases import k_fence, k_lease
-from shared.store import Store, connect
+from shared.store import K_ASSIGN, K_MAPPERS, Store, connect, k_fence, k_lease
 r = connect(os.environ["HIVEMAP_REDIS_URL"])
 s = Store(r)
 now = time.time() * 1000
@@ -370,12 +369,17 @@ def _run_deployment(engine: Engine, project: Path) -> None:
             wait_for(targets_up, 60, "every Prometheus target up")
 
             # The agents went one to each mapper (hm:assign, least assigned first), and
-            # every live map is owned by a lease of a live mapper.
-            own = _ownership(compose)
+            # every live map is owned by a lease of a live mapper (a map handed over for
+            # a merge has none until the asker's next lease round: retried).
+            def all_owned():
+                got = _ownership(compose)
+                assert got["maps"] and all(m["owner"] in _live(got) and m["token"] == m["fence"]
+                                           for m in got["maps"].values()), got  # fmt: skip
+                return got
+
+            own = wait_for(all_owned, 15, "every map owned by a live mapper", every=0.5)
             print("ownership before the kill:", json.dumps(own))
             assert set(own["assign"].values()) == mapper_ids.keys(), own["assign"]
-            assert own["maps"] and all(m["owner"] in _live(own) and m["token"] == m["fence"]
-                                       for m in own["maps"].values()), own  # fmt: skip
 
             # The placerec pool: every member holds every keyframe (its database is
             # replicated; the owner of a map alone queries it).
@@ -388,12 +392,22 @@ def _run_deployment(engine: Engine, project: Path) -> None:
             timings["agents_seen"] = time.monotonic() - t
             t = time.monotonic()
 
+            # The two agents fly the same place from two mappers' maps: place recognition
+            # matches them across owners, one map is handed over and they merge.
+            def merged():
+                got = _ownership(compose)
+                return len(got["maps"]) == 1 and got
+
+            own = wait_for(merged, 60, "the two maps merged across their owners")
+            wait_for(lambda: sum(_prom(engine, "hivemap_mapper_handovers").values()) >= 1, 30,
+                     "the hand-over counted")  # fmt: skip
+            ((merged_map, info),) = own["maps"].items()
+            assert sorted(info["agents"]) == ["agent-0", "agent-1"], own
+            timings["merged"] = time.monotonic() - t
+
             # kill -9 of the main process (PID 1 of its container) of the mapper that owns
-            # the most maps: each map is owned again, and the restart policy brings it back.
-            held = {}
-            for m in own["maps"].values():
-                held[m["owner"]] = held.get(m["owner"], 0) + 1
-            victim_id = max(mapper_ids, key=lambda k: (held.get(k, 0), k))
+            # the merged map: the other takes it over, and the restart policy brings it back.
+            victim_id = info["owner"]
             mapper = mapper_ids[victim_id]
             before = compose.inspect(mapper)
             os.kill(before["State"]["Pid"], signal.SIGKILL)
@@ -408,10 +422,11 @@ def _run_deployment(engine: Engine, project: Path) -> None:
                         and st["State"].get("Health", {}).get("Status") == "healthy")  # fmt: skip
 
             def owned_again():
-                # Taken over by the other mapper, or taken back by the restarted one
-                # (its host name, so its id, is the same) with a new fencing token; or,
-                # once two leases went by, held by the restarted one at all (it could
-                # only have asked before the old lease ran out, keeping the token).
+                # Taken over by the other mapper, or (if it came back first) taken back by
+                # the restarted one -- its host name, so its id, is the same -- with a new
+                # fencing token; or, once two leases went by, held by the restarted one at
+                # all (it could only have asked before the old lease ran out, keeping the
+                # token).
                 got = _ownership(compose)
                 late = time.monotonic() - t_kill > 2 * LEASE_S and restarted()
                 ok = got["maps"] and all(
@@ -424,7 +439,8 @@ def _run_deployment(engine: Engine, project: Path) -> None:
             got = wait_for(owned_again, 60, "every map owned again after the kill", every=0.5)
             timings["maps_owned_again"] = time.monotonic() - t_kill
             print(f"maps owned again {timings['maps_owned_again']:.1f} s after the kill of "
-                  f"{victim_id}:", json.dumps(got["maps"]))  # fmt: skip
+                  f"{victim_id} (lease {LEASE_S:.0f} s):", json.dumps(got["maps"]))  # fmt: skip
+            assert merged_map in got["maps"], got
             wait_for(restarted, 90, "the restart policy bringing the mapper back, healthy")
             assert agents.poll() is None, "the agents landed before the mapper was back"
             timings["mapper_back"] = time.monotonic() - t_kill

@@ -638,12 +638,17 @@ class MapperService:
         return ours
 
     def _may_own(self, map_id: str) -> bool:
-        """Takes the map's lease if it names this mapper, or if nobody holds it and this
-        mapper is the least loaded."""
+        """Takes the map's lease if it names this mapper, or if nobody holds it, nobody
+        asked for it and this mapper is the least loaded. A map released for a merge is
+        left to the mapper that asked (it takes it in its lease round): its old owner,
+        least loaded once it dropped the map and hearing the agent's next batch first,
+        would otherwise take it back, hand it over again at the next round, and so on
+        (a ping-pong that delayed merges by seconds, and in compose stopped them)."""
         owner = self.own.owner(map_id)
         if owner is not None and owner != self.own.id:
             return False
-        if owner is None and not self.own.is_least_loaded():
+        if owner is None and (self.own.handover_asked(map_id) is not None
+                              or not self.own.is_least_loaded()):  # fmt: skip
             return False
         return self.own.leases.acquire(map_id) is not None
 
