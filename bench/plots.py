@@ -219,7 +219,10 @@ def draw_all(results: Path = RESULTS) -> list[Path]:
         if d.get("trajectories"):
             out.append(trajectories(d["trajectories"], results / f"{name}_trajectories.png",
                                     name))  # fmt: skip
-        for run, r in (d.get("runs") or {}).items():
+        runs = d.get("runs") or {}
+        # Most reports key their runs by name; a few (bench_scale) list them.
+        named = runs.items() if isinstance(runs, dict) else enumerate(runs)
+        for run, r in named:
             if isinstance(r, dict) and r.get("trajectories"):
                 png = results / f"{name}_{run}_trajectories.png"
                 out.append(trajectories(r["trajectories"], png, run))
