@@ -20,14 +20,13 @@ from .registration import AgentHandler
 # a margin covers keyframes in flight.
 RECENT_KFS = 15
 MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
-# The agent's newest keyframes that say where the map puts it now. A Sim(3) fitted on a
-# long stretch of a drifting VO is least right at its ends, i.e. where the agent is:
-# with the final map of a team3 run (frames 0:1500), reported poses corrected through a
-# 60-keyframe fit were worse than the raw VO for two of three agents (4.53 / 5.73 /
-# 12.14 mm vs 4.54 / 3.72 / 13.51), through a 10-keyframe fit better for all three
-# (4.00 / 3.62 / 8.64 mm).
+# The agent's newest keyframes that went through a global optimization (loop closure,
+# merge) say where the map puts it. A Sim(3) fitted on a long stretch of a drifting VO
+# is least right at its ends, i.e. where the agent is: with the final map of a team3
+# run (frames 0:1500), reported poses corrected through a 60-keyframe fit were worse
+# than the raw VO for two of three agents (4.53 / 5.73 / 12.14 mm vs 4.54 / 3.72 /
+# 13.51), through a 10-keyframe fit better for all three (4.00 / 3.62 / 8.64 mm).
 LOCAL_FIT_KFS = 10
-OPTIMIZED_WEIGHT = 3
 # The agent's first keyframes fix its frame g for the whole flight: at least ANCHOR_KFS,
 # and as many more as it takes for their centres to spread ANCHOR_SPREAD (RMS distance
 # from their mean, in the VO's units: the initial median scene depth). A fit on a short
@@ -40,6 +39,7 @@ OPTIMIZED_WEIGHT = 3
 ANCHOR_KFS = 20
 ANCHOR_SPREAD = 0.4
 MIN_FIT_KFS = 8
+SETTLED_SPREAD = 0.05  # the local fit's spread (units as ANCHOR_SPREAD)
 
 
 def anchor_count(
@@ -57,6 +57,39 @@ def anchor_count(
     rms = np.sqrt(np.maximum(ms - (mean * mean).sum(1), 0.0))
     ok = np.nonzero((rms >= spread) & (n >= min_kfs))[0]
     return int(ok[0]) + 1 if len(ok) else None
+
+
+def fit_settled(
+    T_l: np.ndarray,
+    T_m: np.ndarray,
+    optimized: np.ndarray,
+    n: int = LOCAL_FIT_KFS,
+    spread: float = SETTLED_SPREAD,
+) -> Sim3 | None:
+    """S_m_l fitted on the newest of an agent's keyframes that a global optimization
+    has settled (``optimized``), VO poses ``T_l`` against map poses ``T_m`` ((N, 4, 4),
+    in keyframe order): the newest ``n`` of them, and as many older ones as it takes
+    for their centres to spread ``spread`` (:func:`anchor_count`); None with fewer than
+    ``min(n, MIN_FIT_KFS)`` settled keyframes or no such spread.
+
+    The keyframes no optimization has touched yet are left out altogether. They sit
+    where registration chained and refined them against the map's points, and that
+    frontier is worse than the VO it came from: replayed from a recorded team5 run
+    (bench/replay_feedback.py), a fit that included them put agent3's reported pose
+    6 % off in scale over its last 20 s (55 keyframes since the last optimization) and
+    its ATE at 65 mm against its VO's 17; the same fit on settled keyframes only, 14 mm.
+    Past them the VO carries the pose on, which is the best the agent has there. The
+    spread is the anchor's lever again: the first global BA of agent5's map settled
+    its first 15 keyframes, taken off slowly within 0.01 units, and ten of them gave a
+    scale of 0.966 that moved its reported pose by 37 cm (ATE 37 vs 20 mm)."""
+    idx = np.nonzero(np.asarray(optimized, bool))[0]
+    if n <= 0 or len(idx) < max(min(n, MIN_FIT_KFS), 2):
+        return None
+    # Newest first, so the count runs back from the newest settled keyframe.
+    m = anchor_count(T_l[idx[::-1], :3, 3], min_kfs=min(n, len(idx)), spread=spread)
+    if m is None:
+        return None
+    return fit_sim3_poses(T_l[idx[-m:]], T_m[idx[-m:]])
 
 
 def map_to_agent_ref(
@@ -103,18 +136,18 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     The server holds each of the agent's keyframes twice: as the VO sent it (``T_l_kf``)
     and in the map after registration, loop closures, merges and global optimization
     (``T_m_kf``). Two similarities relate them: ``S_m_l`` fitted on the newest
-    ``n_local`` keyframes (where the agent is now) and ``A_m_l`` fitted on its first
-    keyframes (the anchor, :func:`anchor_count`: how the agent's frame sits on the
-    map). ``S_g_l = A_m_l^-1 S_m_l`` moves a VO pose to where the map puts it,
-    expressed in frame ``g``: the agent's own frame as the map sees it, which stays
-    put while the map's frame changes (a merge moves the whole map into another
-    agent's frame; a loop closure re-scales it about the map's first keyframe). With
-    no loop closed, map and VO agree and S_g_l is nearly the identity; after one, it
-    carries the correction of the drift since the agent was last in a place the map
-    knows. The local fit spans tens of keyframes because the newest few are the least
-    settled in the map (their points have few observations when global BA runs).
-    None until the agent has enough keyframes spread widely enough for the anchor, or
-    when a fit is degenerate."""
+    ``n_local`` keyframes that went through a global optimization (:func:`fit_settled`)
+    and ``A_m_l`` fitted on its first keyframes (the anchor, :func:`anchor_count`: how
+    the agent's frame sits on the map). ``S_g_l = A_m_l^-1 S_m_l`` moves a VO pose to
+    where the map puts it, expressed in frame ``g``: the agent's own frame as the map
+    sees it, which stays put while the map's frame changes (a merge moves the whole map
+    into another agent's frame; a loop closure re-scales it about the map's first
+    keyframe). Past the settled keyframes the agent is carried on by its VO's own
+    relative motion (a similarity keeps it), so S_g_l changes only when an optimization
+    lands, and the reported pose never follows the unsettled frontier. None (the agent
+    keeps its last correction, at first none: its VO) until a global optimization has
+    settled enough of its keyframes and its first keyframes spread widely enough for
+    the anchor, or when a fit is degenerate."""
     smap = h.smap
     kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
     if len(kfs) < MIN_FIT_KFS:
@@ -134,13 +167,7 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     if k is None:
         return None
     A_m_l = fit_sim3_poses(T_l[:k], T_m[:k])
-    # Weighted towards keyframes a global optimization has settled (each counts
-    # OPTIMIZED_WEIGHT times): the newest ones still sit where registration first put
-    # them, and where the map's frontier is worse than the VO they pulled the
-    # correction off (team5, agents 1 and 2).
-    rep = np.array([OPTIMIZED_WEIGHT if k.optimized else 1 for k in kfs[-n_local:]])
-    S_m_l = fit_sim3_poses(np.repeat(T_l[-n_local:], rep, axis=0),
-                           np.repeat(T_m[-n_local:], rep, axis=0))  # fmt: skip
+    S_m_l = fit_settled(T_l, T_m, np.array([kf.optimized for kf in kfs], bool), n_local)
     if A_m_l is None or S_m_l is None:
         return None
     S_g_l = A_m_l.inverse() @ S_m_l
