@@ -126,6 +126,15 @@ class Recorder:
             (during if any(a <= t0 <= b for a, b in busy) else other).append(ms)
         return np.array(during), np.array(other)
 
+    def latencies_by_agent(self) -> dict[str, dict]:
+        """Keyframe latency on the wire (first batch seen -> its ack) per agent."""
+        per: dict[str, list[float]] = {}
+        for (agent, kf), t0 in self.sent.items():
+            t1 = self.acked.get((agent, kf))
+            if t1 is not None:
+                per.setdefault(agent, []).append((t1 - t0) * 1e-6)
+        return {a: _pcts(np.array(v)) for a, v in sorted(per.items())}
+
 
 def check_matches(rec: Recorder, seq_of: dict[str, str]) -> list[dict]:
     gts = {a: load_euroc_gt(s) for a, s in seq_of.items()}
@@ -218,6 +227,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         "precision": (sum(m["correct"] for m in judged) / len(judged)) if judged else None,
         "optimizations": sum(len(v) for v in rec.opt_end.values()),
         "kf_latency_during_opt_ms": _pcts(during), "kf_latency_other_ms": _pcts(other),
+        "kf_latency_wire_ms": rec.latencies_by_agent(),
         "trajectories": aligned_trajectories(server),
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
         "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())), "flight": flight,
@@ -226,7 +236,11 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
                                      if k.startswith("HIVEMAP_INJECT__")}, "out": str(out),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
                             ("keyframes", "track_s_median", "track_s_p95", "longest_lost_s",
-                         "chunks", "corrections", "corrections_held", "foreign_points")}
+                             "lost_frames", "chunks", "corrections", "corrections_held",
+                             "foreign_points", "acked_keyframes", "all_acked",
+                             "kf_lost_unacked", "ack_latency_median_s", "ack_latency_p95_s",
+                             "messages", "bytes", "bytes_per_s", "kf_resent", "resent",
+                             "flight_s")}
                         for a, v in doc["agents"].items()},
     }  # fmt: skip
 
@@ -271,9 +285,15 @@ def main() -> int:
     ap.add_argument("--drop", type=float, default=0.0, help="loss on the agents' messages")
     ap.add_argument("--delay", type=float, default=0.0, help="delay (s) on the agents' messages")
     ap.add_argument("--jitter", type=float, default=0.0)
+    ap.add_argument("--inject-seed", type=int, default=0, help="seed of the loss/delay injector")
     args = ap.parse_args()
     # The communication controller (CCM-SLAM §5.3) in every agent: bad links.
-    for k, v in (("DROP", args.drop), ("DELAY_S", args.delay), ("JITTER_S", args.jitter)):
+    for k, v in (
+        ("DROP", args.drop),
+        ("DELAY_S", args.delay),
+        ("JITTER_S", args.jitter),
+        ("SEED", args.inject_seed),
+    ):
         if v:
             os.environ[f"HIVEMAP_INJECT__{k}"] = str(v)
     cam = args.camera
@@ -330,6 +350,17 @@ def main() -> int:
           for n, r in runs.items() for a, m in r.get("flight", {}).items()]  # fmt: skip
     if fl:
         print(table(fl, list(fl[0])))
+    # Per agent: keyframes created / acknowledged, ack latency at the agent (first send ->
+    # ack, resends included) and on the wire, traffic.
+    ak = [{"run": n, "agent": a, "kfs": s.get("keyframes"), "acked": s.get("acked_keyframes"),
+           "all_acked": s.get("all_acked"), "lost": s.get("kf_lost_unacked"),
+           "ack_p50_ms": 1e3 * (s.get("ack_latency_median_s") or float("nan")),
+           "ack_p95_ms": 1e3 * (s.get("ack_latency_p95_s") or float("nan")),
+           "wire_p95_ms": r["kf_latency_wire_ms"].get(a, {}).get("p95"),
+           "kB_s": (s.get("bytes_per_s") or 0) / 1e3, "kf_resent": s.get("kf_resent")}
+          for n, r in runs.items() for a, s in r["agent_stats"].items()]  # fmt: skip
+    if ak:
+        print(table(ak, list(ak[0])))
     mp = [{"run": n, **m} for n, r in runs.items() for m in r["mappers"]]
     if mp:
         print(table(mp, list(mp[0])))
