@@ -264,7 +264,9 @@ def mapper_instances(stack, scale) -> list[dict]:
                 ("takeovers", "hivemap_mapper_takeovers"),
                 ("handovers", "hivemap_mapper_handovers"),
                 ("merges", "hivemap_map_merges_total"),
-                ("fenced_writes", "hivemap_mapper_fenced_writes"))}})  # fmt: skip
+                ("fenced_writes", "hivemap_mapper_fenced_writes"),
+                *((f"reg_{w}", f'hivemap_registration_events_total{{what="{w}"}}')
+                  for w in ("duplicate", "stale", "early", "orphan", "rechained")))}})  # fmt: skip
     return out
 
 

@@ -44,6 +44,14 @@ not acknowledged yet is also folded into the buffered keyframe, so a resend of i
 carries the newest pose. (The server applies pose data newer than what it has only,
 so reordered messages cannot bring an old pose back.)
 
+Loss is inferred from the batch an ack answers (``Ack.seq``): what went out in an
+earlier batch and is neither acknowledged nor held by the server was lost, since the
+server takes an agent's batches in the order they arrive. On a link that reorders
+(delay with jitter) a batch overtaken by a later one is not lost, only late: as TCP's
+RACK does, only a batch sent more than a reordering window before the answered one
+counts as lost (``reorder_s``: four times the ack latency's mean deviation, estimated
+from 0, so ~0 on a steady link), else every overtaken batch was sent twice.
+
 The same class serves the real VO agent and the feature-level simulated agent.
 """
 
@@ -114,6 +122,7 @@ class CommModule:
         self._rng = random.Random(agent)  # seeded: a run replays the same resend times
         self.srtt: float | None = None
         self.rttvar = 0.0
+        self.mdev = 0.0  # the ack latency's mean deviation, from 0 (for reorder_s)
         self.window = float(window)
         self.window_max = window_max
         self.window_min = min(window_min, window)
@@ -149,6 +158,7 @@ class CommModule:
         self._upd_kf_sent: dict[int, tuple[int, KeyframeUpdate]] = {}
         self._upd_mp_sent: dict[int, tuple[int, tuple[int, np.ndarray]]] = {}
         self._upd_msgs: dict[int, _Sent] = {}
+        self._seq_t: dict[int, float] = {}  # when each batch went out
         self.resent_reasons: dict[tuple[str, str], int] = {}
         self.stats = CommStats()
 
@@ -182,6 +192,7 @@ class CommModule:
         if self.srtt is None:
             self.srtt, self.rttvar = lat, lat / 2
         else:
+            self.mdev = 0.75 * self.mdev + 0.25 * abs(lat - self.srtt)
             self.rttvar = 0.75 * self.rttvar + 0.25 * abs(lat - self.srtt)
             self.srtt = 0.875 * self.srtt + 0.125 * lat
         if lat <= self.ack_target_s:
@@ -195,6 +206,19 @@ class CommModule:
             self._last_cut = now
             self.window = max(float(self.window_min), self.window / 2)
             self.stats.window_cuts += 1
+
+    @property
+    def reorder_s(self) -> float:
+        """How much earlier than an answered batch another must have gone out to count
+        as lost rather than overtaken (RACK's reordering window)."""
+        return min(4 * self.mdev, self.rto)
+
+    def _lost_before(self, seq: int, answered: int) -> bool:
+        """Batch ``seq`` is lost: batch ``answered``, sent later, was answered first."""
+        if seq >= answered:
+            return False
+        t, ta = self._seq_t.get(seq), self._seq_t.get(answered)
+        return t is None or ta is None or t < ta - self.reorder_s
 
     @property
     def in_flight(self) -> int:
@@ -338,35 +362,44 @@ class CommModule:
                 if i in self.sent_kfs:
                     self.sent_kfs[i].t = now
                     self.held.add(i)
+        # The batch this ack answers: its own seq, or (a server that does not say) the
+        # newest batch one of the acknowledged keyframes went out in.
+        answered = ack.seq if ack.seq >= 0 else newest_seq
         if ack.missing_kf_ids is not None:
             for i in ack.missing_kf_ids.tolist():
-                if i in self.kfs and i not in self.queued_kfs:
+                s = self.sent_kfs.get(i)
+                # Not when it went out again after the answered batch (on its way).
+                again = s is not None and ack.seq >= 0 and not self._lost_before(s.seq, ack.seq)
+                if i in self.kfs and i not in self.queued_kfs and not again:
                     self._requeue_kf(i, "nack")
                     self.urgent.add(i)
-        if newest_seq >= 0:
-            # Gap evidence: anything sent in an earlier message than an acked keyframe,
-            # yet not acked itself, was lost (messages are processed in order).
+        if answered >= 0:
+            # Gap evidence: anything sent in an earlier batch than the answered one,
+            # yet neither acked nor held, was lost (batches are processed in order).
             for i, s in list(self.sent_kfs.items()):
-                if s.seq < newest_seq and i not in held:
+                if i not in held and self._lost_before(s.seq, answered):
                     self._requeue_kf(i, "gap")
             for i, s in list(self.sent_mps.items()):
                 # A point whose keyframe is not acknowledged waits with it on the
                 # server (or goes again with it): no evidence of its own loss.
-                if s.seq < newest_seq and not self._waits_for_kf(i):
+                if self._lost_before(s.seq, answered) and not self._waits_for_kf(i):
                     self._requeue_mp(i, "gap")
+            for q in [q for q in self._seq_t if q < answered - 10_000]:
+                del self._seq_t[q]
         self._on_update_ack(ack.seq)
         self.stats.ack_latencies.extend(lat)
         return lat
 
     def _on_update_ack(self, seq: int) -> None:
         """The server answered batch ``seq``: its updates arrived, and those of earlier
-        unanswered batches were lost (the server takes an agent's batches in order)."""
+        unanswered batches sent before the reordering window were lost (the server takes
+        an agent's batches in the order they arrive); later ones may still come."""
         if seq < 0:  # a server that does not say: as before, updates are optimistic
             self._upd_msgs.clear()
             self._upd_kf_sent.clear()
             self._upd_mp_sent.clear()
             return
-        for s in [s for s in self._upd_msgs if s <= seq]:
+        for s in [s for s in self._upd_msgs if s == seq or self._lost_before(s, seq)]:
             self._upd_msgs.pop(s)
             if s < seq:
                 self._requeue_updates(s, "gap")
@@ -518,6 +551,7 @@ class CommModule:
             return None  # all of it waits for the window (or its keyframe)
         if kf_upd or upd_ids:
             self._upd_msgs[seq] = _Sent(now, seq, self._timeout(1))
+        self._seq_t[seq] = now
         self.seq += 1
         self.last_send = now
         return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)

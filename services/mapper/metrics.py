@@ -36,6 +36,14 @@ LOCK_HOLD = Histogram(
     buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0, 2.5),
 )
 
+# What a lossy or jittery link made registration do (registration.py): duplicates
+# acknowledged again, stale pose data ignored, updates kept for their late keyframe,
+# keyframes anchored by the orphan rule and later placed from their predecessor.
+REGISTRATION = Counter(
+    "hivemap_registration_events_total",
+    "Out-of-order arrivals handled by registration",
+    ["what"],
+)
 OVERLOAD_LEVEL = Gauge(
     "hivemap_mapper_overload_level",
     "What the mapper sheds now: 0 nothing, 1 live poses, 2 + feedback rate, "
@@ -52,4 +60,5 @@ SHED = Counter(
 # yet" as 0 rather than as an empty panel.
 at_zero(MATCHES, ("merge", "loop", "loop_redundant"))
 at_zero(OPT_REQUESTS, OptimizeRequest.REASONS)
+at_zero(REGISTRATION, ("duplicate", "stale", "early", "orphan", "rechained"))
 at_zero(SHED, ("pose", "feedback", "placerec", "optimize", "keyframe_batch"))

@@ -75,6 +75,9 @@ class IngestResult:
     duplicates: int = 0
     pending_kfs: int = 0
     orphans_anchored: int = 0
+    stale: int = 0  # pose data older than what the map has (reordered or resent)
+    early: int = 0  # updates that came before their keyframe
+    rechained: int = 0  # orphan-rule keyframes placed from their late predecessor
     refined: int = 0
     fused: int = 0
 
@@ -196,10 +199,12 @@ class AgentHandler:
         # carried its predecessor's last local-BA correction as an error.
         for upd in batch.kf_updates:
             if v < self.kf_ver.get(upd.id, v):
+                res.stale += 1
                 continue  # older than the pose it has (a reordered or resent message)
             g = self.kf_gid(upd.id)
             if not self.has_kf(upd.id) and upd.id not in self.pending_kfs:
                 # Before its keyframe (lost or overtaken): kept until it arrives.
+                res.early += 1
                 self.early_updates[upd.id] = (v, upd)
                 if len(self.early_updates) > EARLY_UPDATES_MAX:
                     del self.early_updates[min(self.early_updates)]
@@ -259,6 +264,7 @@ class AgentHandler:
             if skf is None or T is None:
                 continue
             del self.anchored[sid]
+            res.rechained += 1
             T_old, skf.T_m_kf = skf.T_m_kf, T
             res.changed_kfs.add(skf.gid)
             self._move_later(sid, T @ np.linalg.inv(T_old), res)

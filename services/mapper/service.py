@@ -73,6 +73,7 @@ from .metrics import (
     MAPS_OWNED,
     OVERLOAD_LEVEL,
     QUEUE_DEPTH,
+    REGISTRATION,
     SHED,
     TAKEOVERS,
 )
@@ -410,6 +411,11 @@ class MapperService:
         for _ in res.new_kfs:
             KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
 
+        for what, n in (("duplicate", res.duplicates), ("stale", res.stale),
+                        ("early", res.early), ("orphan", res.orphans_anchored),
+                        ("rechained", res.rechained)):  # fmt: skip
+            if n:
+                REGISTRATION.labels(what).inc(n)
         STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
         STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
         MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))
