@@ -314,3 +314,44 @@ def test_an_update_of_an_unacked_keyframe_is_folded_into_its_resend():
     again = c.next_message(5.0, 0, 1)
     assert [k.id for k in again.new_kfs] == [0, 1]
     assert again.new_kfs[1].T_pred_kf[0, 3] == 0.5  # the resend carries the newest pose
+
+
+def test_an_overtaken_batch_is_late_not_lost():
+    """Delay with jitter reorders batches. One overtaken within the reordering window (4x
+    the ack latency's mean deviation) is not sent again; one sent before it is lost. A
+    held keyframe's batch is evidence too, and a keyframe the server asks for that
+    already went out again after the answered batch does not go a third time."""
+    base = _keyframes(1)[0].kf
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100)
+    seqs, t = {}, 0.0
+
+    def ack(seq, kf_ids=(), held=(), missing=()):
+        c.on_ack(Ack("A", "m", np.array(kf_ids, np.int64), np.zeros(0, np.int64), 0, 0,
+                     np.array(held, np.int64), np.array(missing, np.int64), seq), t)  # fmt: skip
+
+    # Ack latencies spread 0.5-1.5 s: the window grows to about a second.
+    for i in range(40):
+        c.add_keyframe(replace(base, id=i))
+        seqs[i] = c.next_message(t, 0, i).seq
+        t += 0.5 + (i % 3) * 0.5
+        ack(seqs[i], [i])
+    assert 0.5 < c.reorder_s < 2.0 and not c.resent_reasons
+    t0 = t
+    for i in (200, 201, 202):
+        c.add_keyframe(replace(base, id=i))
+        seqs[i] = c.next_message(t, 0, i).seq
+        t += 0.2
+    # 202 (sent 0.4 s after 200) overtook 200 and 201: they are late, not lost.
+    ack(seqs[202], [202])
+    assert c.queued_kfs == [] and not c.resent_reasons
+    # Sent 2.5 s after 200, 203 is held (its predecessor 201 is missing): 200 was lost.
+    t = t0 + 2.5
+    c.add_keyframe(replace(base, id=203))
+    seqs[203] = c.next_message(t, 0, 203).seq
+    ack(seqs[203], held=[203], missing=[201])
+    assert c.queued_kfs == [200, 201] and c.resent_reasons == {("kf", "gap"): 1, ("kf", "nack"): 1}
+    m = c.next_message(t + 0.1, 0, 203)
+    assert [k.id for k in m.new_kfs] == [200, 201]
+    # A late answer to an earlier batch still names 201 missing: it is on its way.
+    ack(seqs[202], missing=[201])
+    assert c.queued_kfs == []
