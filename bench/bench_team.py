@@ -167,7 +167,7 @@ def _gt_at(gt: Trajectory, stamp: int) -> np.ndarray:
 
 
 def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
-         camera: str = "", mappers: int = 1) -> dict:  # fmt: skip
+         camera: str = "", mappers: int = 1, agent_nice: int = 10) -> dict:  # fmt: skip
     sources = []
     for i, (seq, seed) in enumerate(zip(seqs, seeds, strict=True)):
         q = (
@@ -185,13 +185,15 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         time.sleep(0.5)
 
     # Agents fly on their own computers; here they share the server's two cores, so
-    # they run at lower priority and the server gets the CPU it would have alone.
+    # they run at lower priority and the server gets the CPU it would have alone
+    # (--agent-nice 0: as `hivemap up` + `hivemap agent` on one box run them).
     from services.launcher import Scale
 
     scale = Scale(mappers=mappers)
     try:  # kept up to read each mapper's metrics, then stopped here
         doc = run_team(Settings(), sources, out, feedback=feedback, on_stack=attach,
-                       settle_timeout=180, agent_nice=10, scale=scale, keep=True)  # fmt: skip
+                       settle_timeout=180, agent_nice=agent_nice, scale=scale,
+                       keep=True)  # fmt: skip
         instances = mapper_instances(doc["stack"], scale)
     finally:
         if "stack" in holder:
@@ -232,7 +234,7 @@ def team(seqs: list[str], seeds: list[int], frames: str, feedback: bool = True,
         "online_ate_m": online, "online_ate_sum_m": float(sum(online.values())),
         "vo_ate_m": vo, "vo_ate_sum_m": float(sum(vo.values())), "flight": flight,
         "mappers": instances,
-        "camera": camera, "inject": {k: v for k, v in os.environ.items()
+        "camera": camera, "agent_nice": agent_nice, "inject": {k: v for k, v in os.environ.items()
                                      if k.startswith("HIVEMAP_INJECT__")}, "out": str(out),
         "agent_stats": {a: {k: v.get("stats", {}).get(k) for k in
                             ("keyframes", "track_s_median", "track_s_p95", "longest_lost_s",
@@ -265,6 +267,7 @@ def mapper_instances(stack, scale) -> list[dict]:
                 ("handovers", "hivemap_mapper_handovers"),
                 ("merges", "hivemap_map_merges_total"),
                 ("fenced_writes", "hivemap_mapper_fenced_writes"),
+                ("shed_batches", 'hivemap_mapper_shed_total{what="keyframe_batch"}'),
                 *((f"reg_{w}", f'hivemap_registration_events_total{{what="{w}"}}')
                   for w in ("duplicate", "stale", "early", "orphan", "rechained")))}})  # fmt: skip
     return out
@@ -287,6 +290,7 @@ def main() -> int:
     ap.add_argument("--drop", type=float, default=0.0, help="loss on the agents' messages")
     ap.add_argument("--delay", type=float, default=0.0, help="delay (s) on the agents' messages")
     ap.add_argument("--jitter", type=float, default=0.0)
+    ap.add_argument("--agent-nice", type=int, default=10, help="agents' nice (0: one box)")
     ap.add_argument("--inject-seed", type=int, default=0, help="seed of the loss/delay injector")
     args = ap.parse_args()
     # The communication controller (CCM-SLAM §5.3) in every agent: bad links.
@@ -302,12 +306,11 @@ def main() -> int:
     runs: dict = {}
     only = args.only.split(",")
     if "team3" in only:
-        runs["team3"] = team(
-            ["MH01", "MH02", "MH03"], [0, 0, 0], args.frames, camera=cam, mappers=args.mappers
-        )
+        runs["team3"] = team(["MH01", "MH02", "MH03"], [0, 0, 0], args.frames, camera=cam,
+                             mappers=args.mappers, agent_nice=args.agent_nice)  # fmt: skip
     if "team5" in only:
         runs["team5"] = team(["MH01", "MH02", "MH03", "MH04", "MH05"], [0] * 5, args.frames,
-                             camera=cam)  # fmt: skip
+                             camera=cam, agent_nice=args.agent_nice)  # fmt: skip
     if "team2_seed1" in only:
         # Another world: two agents in the world of seed 1.
         runs["team2_seed1"] = team(["MH01", "MH02"], [1, 1], args.frames, camera=cam)
