@@ -355,3 +355,21 @@ def test_an_overtaken_batch_is_late_not_lost():
     # A late answer to an earlier batch still names 201 missing: it is on its way.
     ack(seqs[202], missing=[201])
     assert c.queued_kfs == []
+
+
+def test_an_answered_update_batch_is_no_evidence_of_a_lost_keyframe():
+    """An overloaded mapper sheds keyframe batches unanswered but answers update-only
+    ones: what it shed waits for its backed-off timeout, not for the next update's ack."""
+    kfs = _keyframes(2)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=2.0)
+    c.add_keyframe(kfs[0].kf)
+    m0 = c.next_message(0.0, 0, 0)
+    c.on_ack(Ack("A", "m", np.array([0], np.int64), np.zeros(0, np.int64), 0, 0, seq=m0.seq), 0.01)
+    c.add_keyframe(kfs[1].kf)
+    assert [k.id for k in c.next_message(0.1, 0, 1).new_kfs] == [1]  # shed
+    c.update_keyframe(KeyframeUpdate(0, -1, np.eye(4), -1, np.eye(4)))
+    m2 = c.next_message(0.2, 0, 1)
+    assert m2.new_kfs == [] and len(m2.kf_updates) == 1
+    c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, seq=m2.seq), 0.21)
+    assert c.queued_kfs == [] and not c.resent_reasons
+    assert c.check_timeouts(2.5) == 1 and c.queued_kfs == [1]

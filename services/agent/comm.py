@@ -363,8 +363,12 @@ class CommModule:
                     self.sent_kfs[i].t = now
                     self.held.add(i)
         # The batch this ack answers: its own seq, or (a server that does not say) the
-        # newest batch one of the acknowledged keyframes went out in.
-        answered = ack.seq if ack.seq >= 0 else newest_seq
+        # newest batch one of the acknowledged keyframes went out in. Only a batch whose
+        # keyframes the server took (acknowledged or held) proves an earlier one lost:
+        # an overloaded mapper sheds keyframe batches unanswered yet still answers
+        # update-only ones, and what it shed must wait for its backed-off timeout.
+        took = bool(acked) or bool(held)
+        answered = (ack.seq if ack.seq >= 0 else newest_seq) if took else -1
         if ack.missing_kf_ids is not None:
             for i in ack.missing_kf_ids.tolist():
                 s = self.sent_kfs.get(i)
