@@ -12,6 +12,16 @@ they stand for robots, and the figure is the server's.
     .venv/bin/python bench/bench_ramp.py [--counts 1,8,16,24,32] [--seconds 60]
 
 Writes bench/results/ramp.json and ramp_latency.png (latency against agents).
+
+Overload (issue 18 item 2), one command:
+
+    .venv/bin/python bench/bench_ramp.py --overload [--counts 8,48] [--seconds 120]
+
+runs 8 and then 48 agents and checks: no service died; each of the first 8 agents'
+traffic in the 48-agent run is at most 1.3x the same agent's (same trajectory and seed)
+in the 8-agent run; the p95 latency of the keyframes the mapper accepted is at most 1 s;
+and within 60 s of the end of their flights every keyframe the agents made is stored
+(in Redis, or culled as redundant) and acknowledged. Writes bench/results/overload.json.
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ from plots import latency_vs_team  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
 from shared.runtime import set_priority  # noqa: E402
+from shared.store import Store, connect  # noqa: E402
 from shared.trajectory import SEQUENCES  # noqa: E402
 
 SERVER = ("mapper", "placerec", "optimizer")
@@ -51,7 +62,45 @@ def _pooled_quantile(metrics: dict[str, float], q: float) -> float:
     return hist_quantile(pooled, LAT, 'all="1"', q)
 
 
-def run_step(n: int, seconds: float) -> dict:
+def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
+    """py-spy samplers on the server's services for ``seconds`` (collapsed stacks, one
+    file per service; the rate is low so the sampler's own CPU stays small)."""
+    spy = Path(sys.executable).with_name("py-spy")
+    if not spy.exists():
+        raise SystemExit("--profile needs py-spy in the venv: .venv/bin/pip install py-spy")
+    out.mkdir(parents=True, exist_ok=True)
+    return [subprocess.Popen([str(spy), "record", "--pid", str(pids[name]), "--rate", "50",
+                              "--nonblocking", "--format", "raw", "--duration",
+                              str(int(seconds)), "--output", str(out / f"{name}.txt")],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            for name in SERVER if name in pids]  # fmt: skip
+
+
+def top_of(path: Path, n: int = 25) -> str:
+    """The ``n`` functions with most samples in a py-spy collapsed-stack file, by own
+    samples and by samples with the function anywhere on the stack."""
+    own: dict[str, int] = {}
+    incl: dict[str, int] = {}
+    total = 0
+    for line in path.read_text().splitlines():
+        stack, _, cnt = line.rpartition(" ")
+        if not stack:
+            continue
+        c = int(cnt)
+        total += c
+        frames = stack.split(";")
+        own[frames[-1]] = own.get(frames[-1], 0) + c
+        for f in set(frames):
+            incl[f] = incl.get(f, 0) + c
+    lines = [f"{path.stem}: {total} samples"]
+    for title, d in (("own", own), ("inclusive", incl)):
+        lines.append(f"  by {title}:")
+        for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:n]:
+            lines.append(f"    {100 * c / max(total, 1):5.1f} %  {f}")
+    return "\n".join(lines)
+
+
+def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
     stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix="hivemap-ramp-"))
@@ -70,24 +119,56 @@ def run_step(n: int, seconds: float) -> dict:
         t0 = time.monotonic()
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
+        spies = _profilers(pids, seconds, profile / f"{n}") if profile else []
         p.wait(seconds * 4 + 300)
+        for spy in spies:
+            spy.wait(60)
         wall = time.monotonic() - t0
         cpu = {k: cpu_s(pid) - cpu0[k] for k, pid in pids.items()}
         load1 = os.getloadavg()[0]
         metrics = mapper_metrics(stack)
+        # Services that exited during the run (nothing restarts them here).
+        died = [c.name for c in stack.children if c.proc.poll() is not None]
+        stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]
+        if len(stats) != n:
+            raise RuntimeError(f"{n} agents: {len(stats)} stats files in {out} (agents failed?)")
+        # Every keyframe an agent made is in Redis: stored, or culled as redundant.
+        store = Store(connect(stack.redis.url))
+        not_stored = {s["agent"]: s["keyframes"] - len(set(store.keyframe_ids(s["agent"]))
+                                                       | set(store.removed(s["agent"])))
+                      for s in stats}  # fmt: skip
+        store.close()
     finally:
         stack.stop()
-    stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]
-    if len(stats) != n:
-        raise RuntimeError(f"{n} agents: {len(stats)} stats files in {out} (agents failed?)")
     kfs = sum(s["keyframes"] for s in stats)
     lats = np.array([x[1] for s in stats for x in s.get("ack_series", [])] or [np.nan])
     server_cpu = sum(cpu.get(k, 0.0) for k in SERVER)
     flight = float(np.mean([s["flight_s"] for s in stats]))
     kf_rate = kfs / max(flight, 1e-9) / max(n, 1)  # keyframes per second per agent
     ms_per_kf = 1e3 * server_cpu / max(kfs, 1)
+
+    def index(s: dict) -> int:
+        return int(s["agent"].rpartition("-")[2]) if "-" in s["agent"] else 0
+
     return {
         "agents": n,
+        "died": died,
+        "keyframes_not_stored": sum(max(v, 0) for v in not_stored.values()),
+        # From the end of each agent's flight to its exit (all acknowledged, or the
+        # 60 s flush timeout): the longest over the agents.
+        "after_flights_s": max(s["duration_s"] - s["flight_s"] for s in stats),
+        "per_agent": [
+            {
+                "i": index(s),
+                "traj": SEQUENCES[index(s) % len(SEQUENCES)],
+                "keyframes": s["keyframes"],
+                "kB_per_s": s["bytes_per_s"] / 1e3,
+                "bytes_per_kf": s["bytes"] / max(s["keyframes"], 1),
+                "all_acked": s["all_acked"],
+                "kf_resent": s["kf_resent"],
+            }
+            for s in sorted(stats, key=index)
+        ],  # fmt: skip
         "keyframes": kfs,
         "kf_per_s_per_agent": kf_rate,
         "all_acked": sum(bool(s["all_acked"]) for s in stats),
@@ -114,16 +195,57 @@ def run_step(n: int, seconds: float) -> dict:
     }
 
 
+def overload_check(base: dict, big: dict) -> dict:
+    """Issue 18 item 2 on a base run (8 agents) and an overloaded one (48)."""
+    by_i = {a["i"]: a for a in base["per_agent"]}
+    ratio = [{"i": a["i"], "kB_per_s": a["kB_per_s"] / by_i[a["i"]]["kB_per_s"],
+              "bytes_per_kf": a["bytes_per_kf"] / by_i[a["i"]]["bytes_per_kf"]}
+             for a in big["per_agent"]
+             if a["i"] in by_i and by_i[a["i"]]["kB_per_s"] > 0]  # fmt: skip
+    out = {
+        "no_crash": not big["died"],
+        "traffic_ratio_max": max((r["kB_per_s"] for r in ratio), default=float("nan")),
+        "bytes_per_kf_ratio_max": max((r["bytes_per_kf"] for r in ratio), default=float("nan")),
+        "traffic_ratio": ratio,
+        "accepted_p95_ms": big["mapper_p95_ms"],
+        "after_flights_s": big["after_flights_s"],
+        "all_acked": big["all_acked"] == big["agents"],
+        "keyframes_not_stored": big["keyframes_not_stored"],
+    }
+    out["pass"] = {
+        "no_crash": out["no_crash"],
+        "traffic": out["traffic_ratio_max"] <= 1.3,
+        "accepted_p95": out["accepted_p95_ms"] <= 1000,
+        "stored_and_acked_within_60s": out["all_acked"]
+        and out["keyframes_not_stored"] == 0
+        and out["after_flights_s"] <= 60,
+    }
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--counts", default="1,8,16,24,32")
-    ap.add_argument("--seconds", type=float, default=60.0, help="flight per agent")
-    ap.add_argument("--name", default="ramp")
+    ap.add_argument("--counts", default=None, help="1,8,16,24,32 (--overload: 8,48)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="flight per agent (60; --overload: 120)")  # fmt: skip
+    ap.add_argument("--name", default=None, help="ramp (--overload: overload)")
+    ap.add_argument("--overload", action="store_true",
+                    help="issue 18 item 2: the last count against the first")  # fmt: skip
+    ap.add_argument("--profile", type=Path, default=None,
+                    help="py-spy each server service over the flight; collapsed stacks "
+                         "under DIR/<agents>/<service>.txt and a summary printed")  # fmt: skip
     args = ap.parse_args()
+    ov = args.overload
+    args.counts = args.counts or ("8,48" if ov else "1,8,16,24,32")
+    args.seconds = args.seconds or (120.0 if ov else 60.0)
+    args.name = args.name or ("overload" if ov else "ramp")
     rows = []
     for n in (int(x) for x in args.counts.split(",")):
         print(f"{n} agent(s) ...", flush=True)
-        rows.append(run_step(n, args.seconds))
+        rows.append(run_step(n, args.seconds, args.profile))
+        if args.profile:
+            for f in sorted((args.profile / str(n)).glob("*.txt")):
+                print(top_of(f), flush=True)
         r = rows[-1]
         print(f"  mapper p95 {r['mapper_p95_ms']:.0f} ms, round trip p95 {r['p95_ms']:.0f} ms, "
               f"{r['kB_per_s_per_agent']:.0f} kB/s/agent, {r['server_cpu_ms_per_kf']:.1f} "
@@ -144,9 +266,13 @@ def main() -> int:
             ],
         )
     )
+    over = overload_check(rows[0], rows[-1]) if ov and len(rows) > 1 else None
+    if over is not None:
+        print("overload:", json.dumps({k: v for k, v in over.items() if k != "traffic_ratio"}))
     report = {
         "ramp": rows,
         "seconds": args.seconds,
+        **({"overload": over} if over is not None else {}),
         "bar": {"mapper_p95_ms_at_24": next((r["mapper_p95_ms"] for r in rows
                                              if r["agents"] == 24), None),
                 "pass_24": all(r["mapper_p95_ms"] <= 200 for r in rows if r["agents"] <= 24),
