@@ -307,7 +307,13 @@ class MapPoints:
 @dataclass
 class KeyframeBatch:
     """Agent -> mapper on ``hivemap/agent/{agent}/up/kf``: everything new or changed
-    since the previous message, keyframes sorted by id (CCM-SLAM §4.5)."""
+    since the previous message, keyframes sorted by id (CCM-SLAM §4.5).
+
+    ``session`` (optional, added within v1): the agent process's session, a random id
+    drawn when it starts. Keyframe ids are the agent's own small integers, counted from
+    0 in every flight, so the server tells a second flight under the same agent id
+    from a resend of the first by it (``services/mapper/sessions.py``). None: an agent
+    of the first version (its flights all count as one)."""
 
     SCHEMA: ClassVar[str] = "hivemap.kf_batch/1"
     agent: str
@@ -318,23 +324,24 @@ class KeyframeBatch:
     kf_updates: list[KeyframeUpdate] = field(default_factory=list)
     new_mps: MapPoints = field(default_factory=MapPoints.empty)
     mp_updates: MapPoints = field(default_factory=lambda: MapPoints.empty(False))
+    session: int | None = None
 
     def encode(self, compact: bool = False) -> bytes:
         """``compact``: the smaller form agents send (see ``KP_QUANT``)."""
         c = compact
-        return packb(
-            {
-                "schema": self.SCHEMA,
-                "agent": self.agent,
-                "seq": self.seq,
-                "sent_ns": self.sent_ns,
-                "kf_ref": self.kf_ref,
-                "new_kfs": [k.to_dict(c) for k in self.new_kfs],
-                "kf_updates": [u.to_dict(c) for u in self.kf_updates],
-                "new_mps": self.new_mps.to_dict(c),
-                "mp_updates": self.mp_updates.to_dict(c),
-            }
-        )
+        d = {"schema": self.SCHEMA, "agent": self.agent}
+        if self.session is not None:
+            d["session"] = self.session
+        d.update({
+            "seq": self.seq,
+            "sent_ns": self.sent_ns,
+            "kf_ref": self.kf_ref,
+            "new_kfs": [k.to_dict(c) for k in self.new_kfs],
+            "kf_updates": [u.to_dict(c) for u in self.kf_updates],
+            "new_mps": self.new_mps.to_dict(c),
+            "mp_updates": self.mp_updates.to_dict(c),
+        })  # fmt: skip
+        return packb(d)
 
     @staticmethod
     def decode(data: bytes) -> KeyframeBatch:
@@ -351,6 +358,7 @@ class KeyframeBatch:
             kf_updates=[KeyframeUpdate.from_dict(u) for u in ups],
             new_mps=MapPoints.from_dict(_get(d, "new_mps"), need_descriptors=True),
             mp_updates=MapPoints.from_dict(_get(d, "mp_updates"), need_descriptors=False),
+            session=_session(d),
         )
 
 
@@ -440,6 +448,9 @@ class PoseUpdate:
     resent: int | None = None
     ack_p50_s: float | None = None
     ack_p95_s: float | None = None
+    # Optional (added within v1): the agent's session, as in ``KeyframeBatch``: which of
+    # the flights under this agent id ``kf_ref`` belongs to.
+    session: int | None = None
 
     def encode(self) -> bytes:
         d = {
@@ -447,6 +458,8 @@ class PoseUpdate:
             "T_l_c": self.T_l_c, "kf_ref": self.kf_ref, "T_ref_c": self.T_ref_c,
             "tracking": self.tracking, "fps": float(self.fps),
         }  # fmt: skip
+        if self.session is not None:
+            d["session"] = self.session
         for name in self.HEALTH_INTS:
             if (v := getattr(self, name)) is not None:
                 d[name] = int(v)
@@ -480,6 +493,7 @@ class PoseUpdate:
             T_ref_c=_pose(_get(d, "T_ref_c"), "T_ref_c"),
             tracking=_str(d.get("tracking", "ok"), "tracking"),
             fps=float(fps),
+            session=_session(d),
             **health,
         )
 
@@ -836,6 +850,39 @@ class MapMerged(_Record):
     target: str
     S_t_s: np.ndarray
     sent_ns: int
+
+
+def _session(d: dict) -> int | None:
+    v = d.get("session")
+    if v is None:
+        return None
+    if _int(v, "session") < 0:
+        raise DecodeError("session: negative")
+    return v
+
+
+def peek_session(data: bytes) -> int | None:
+    """The ``session`` of an encoded ``KeyframeBatch`` or ``PoseUpdate`` without decoding
+    the rest (a few microseconds where a decode takes a millisecond or more: every
+    mapper reads it to route each batch before deciding to decode it). None when
+    there is none, and for anything malformed (the decode then says what is wrong)."""
+    try:
+        u = msgpack.Unpacker(
+            raw=False, strict_map_key=False, max_bin_len=64 << 20, max_str_len=1 << 20,
+            max_array_len=1 << 20, max_map_len=1 << 20,
+        )  # fmt: skip
+        u.feed(data)
+        out = None
+        for _ in range(u.read_map_header()):
+            if u.unpack() == "session":
+                out = u.unpack()  # the last one, as a decode into a dict takes it
+            else:
+                u.skip()
+    except Exception:  # msgpack raises several unrelated types on bad input
+        return None
+    if isinstance(out, bool) or not isinstance(out, int) or not 0 <= out < 2**63:
+        return None
+    return out
 
 
 def _envelope(data: bytes, schema: str) -> dict:

@@ -4,14 +4,24 @@ The mapper writes, the API and the CLIs read; nothing else names a key. Layout (
 ``hm``; ``{a}`` agent id, ``{m}`` map id, ids decimal, gids as in ``shared.ids``,
 matrices little-endian float64 row-major):
 
-    hm:agents                SET   agent ids
+    hm:agents                SET   agent ids (the ids keyframes are stored under: one
+                                   per flight, see hm:flights)
     hm:agent_index           HASH  agent -> its index, the high bits of its gids
     hm:agent_index_next      STR   counter that hands out agent indices
     hm:agent:{a}             HASH  map, S_m_l (8 f8: t, q xyzw, s: agent's local frame ->
                                    map), lam (repr float: scale correction of its VO,
                                    CSfM eq. 2-4), index, kf_high (every keyframe id below
                                    it is stored), calib (10 f8: w, h, fx, fy, cx, cy,
-                                   k1, k2, p1, p2), first_ns (first contact)
+                                   k1, k2, p1, p2), first_ns (first contact);
+                                   name (the agent id it flies as), session, flight
+                                   (1, 2, ...): set when the flight is named (absent:
+                                   stored before sessions, name is {a}, flight 1)
+    hm:agent:{a}:sessions    HASH  session (the agent process's random id, in its
+                                   batches) -> the agent id that flight of agent {a}
+                                   is stored under: {a} for its first, {a}.s2, {a}.s3,
+                                   ... for later ones (services/mapper/sessions.py)
+    hm:flights               HASH  stored agent id -> the agent id it flies as; an id is
+                                   given to one flight only
     hm:agent:{a}:kfs         ZSET  stored keyframe ids (score = id)
     hm:agent:{a}:removed     HASH  culled keyframe id -> msgpack [anchor gid, T_anchor_kf
                                    (4x4 f8 array)]: registration chains through it
@@ -94,6 +104,35 @@ _AGENTS, _MAPS, _ALIAS = f"{_P}:agents", f"{_P}:maps", f"{_P}:alias"
 _AGENT_INDEX, _AGENT_INDEX_NEXT = f"{_P}:agent_index", f"{_P}:agent_index_next"
 
 MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
+
+
+# KEYS: hm:agent:{a}:sessions, hm:flights, hm:agents. ARGV: a, session, "hm:agent:"
+# (the new name's hash gets name, session and flight in the same step). The name of a
+# new flight: {a} for the first, else {a}.sN with N its flight number, skipping names
+# another flight holds, and {a} itself when it already names a flight or stored data
+# of an agent from before sessions (that data is its flight 1). A suffixed name is cut
+# to 60 characters, so its map id ("map-" + name) is a valid id.
+_NAME_FLIGHT = """
+local got = redis.call('HGET', KEYS[1], ARGV[2])
+if got then return got end
+local e = 1
+while true do
+  local name = ARGV[1]
+  if e > 1 then
+    local suffix = '.s' .. e
+    name = string.sub(ARGV[1], 1, 60 - #suffix) .. suffix
+  end
+  if redis.call('HEXISTS', KEYS[2], name) == 0 and
+     redis.call('SISMEMBER', KEYS[3], name) == 0 then
+    redis.call('HSET', KEYS[2], name, ARGV[1])
+    redis.call('HSET', KEYS[1], ARGV[2], name)
+    redis.call('HSET', ARGV[3] .. name, 'name', ARGV[1], 'session', ARGV[2], 'flight', e)
+    return name
+  end
+  e = e + 1
+end
+"""
+_FLIGHTS = f"{_P}:flights"
 
 
 def _k(*parts: object) -> str:
@@ -179,6 +218,7 @@ class AgentState:
     index: int
     kf_high: int
     calib: np.ndarray | None = None  # (10,), see the layout
+    name: str | None = None  # the agent id it flies as (read only: set with its flight)
 
 
 @dataclass
@@ -222,6 +262,7 @@ def connect(url: str) -> redis.Redis:
 class Store:
     def __init__(self, r: redis.Redis) -> None:
         self.r = r
+        self._name_flight = r.register_script(_NAME_FLIGHT)
 
     def ping(self) -> bool:
         return bool(self.r.ping())
@@ -241,6 +282,18 @@ class Store:
         n = int(self.r.incr(_AGENT_INDEX_NEXT))
         self.r.hsetnx(_AGENT_INDEX, agent, n)
         return int(self.r.hget(_AGENT_INDEX, agent))
+
+    def flight(self, agent: str, session: int) -> str:
+        """The agent id the flight ``session`` of ``agent`` is stored under, named on
+        first call (atomic across mappers; see ``_NAME_FLIGHT``)."""
+        got = self._name_flight(keys=[_k("agent", agent, "sessions"), _FLIGHTS, _AGENTS],
+                                args=[agent, str(session), _k("agent", "")])  # fmt: skip
+        return got.decode() if isinstance(got, bytes) else got
+
+    def flight_of(self, agent: str, session: int) -> str | None:
+        """The agent id of flight ``session`` of ``agent`` if it is named yet (a read)."""
+        got = self.r.hget(_k("agent", agent, "sessions"), str(session))
+        return None if got is None else got.decode()
 
     @staticmethod
     def new_agent(pipe, agent: str, map_id: str, now_ns: int) -> None:
@@ -363,7 +416,7 @@ class Store:
         return AgentState(
             h[b"map"].decode(), Sim3.from_array(_f8(h[b"S_m_l"], (8,))),
             float(h.get(b"lam", 1.0)), int(h[b"index"]), int(h.get(b"kf_high", -1)),
-            _f8(h.get(b"calib"), (10,)),
+            _f8(h.get(b"calib"), (10,)), h.get(b"name", agent.encode()).decode(),
         )  # fmt: skip
 
     def removed(self, agent: str) -> dict[int, tuple[int, np.ndarray]]:
@@ -401,6 +454,8 @@ class Store:
             "n_kf": int(self.r.zcard(_k("agent", agent, "kfs"))),
             "n_mp": int(self.r.hlen(_k("mp", agent))),
             "first_ns": int(h.get(b"first_ns", 0)),
+            "name": h.get(b"name", agent.encode()).decode(),
+            "flight": int(h.get(b"flight", 1)),
         }
 
     def latest_pose(self, agent: str) -> LivePose | None:

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import bisect
 import random
+import secrets
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -112,8 +113,13 @@ class CommModule:
         ack_target_s: float = 0.5,
         window_min: int = 2,
         buffer_bytes: int = 256_000_000,
+        session: int | None = None,
     ) -> None:
         self.agent = agent
+        # This flight's session: a new one per process, so the server tells this flight's
+        # keyframe ids from an earlier flight's under the same agent id
+        # (services/mapper/sessions.py); the same in every message, resends included.
+        self.session = secrets.randbits(63) if session is None else session
         self.min_interval = 1.0 / rate_hz
         self.max_msg_bytes = max_msg_bytes
         self.resend_timeout_s = resend_timeout_s
@@ -558,7 +564,8 @@ class CommModule:
         self._seq_t[seq] = now
         self.seq += 1
         self.last_send = now
-        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)
+        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd,
+                             self.session)  # fmt: skip
 
     def record_sent(self, nbytes: int) -> None:
         self.stats.messages += 1

@@ -343,7 +343,8 @@ class AgentLoop:
             return
         self._last_pose = now
         msg = PoseUpdate(self.agent, s.stamp_ns, T, self.kf_ref, se3_inv(self.T_l_ref) @ T,
-                         s.state, **self.health.fields(self.comm))  # fmt: skip
+                         s.state, session=self.comm.session,
+                         **self.health.fields(self.comm))  # fmt: skip
         data = msg.encode()
         self.bus.put(keys.agent_pose(self.agent), data, reliable=False)
         self.health.pose_bytes += len(data)

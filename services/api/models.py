@@ -21,7 +21,12 @@ class PoseOut(BaseModel):
 
 
 class AgentOut(BaseModel):
+    # One flight of an agent: ``agent`` is the id its data is stored under (the one the
+    # other routes take), ``name`` the id it flew as and ``flight`` which of that
+    # id's flights it is (1, 2, ...; a second flight of "A" is stored as "A.s2").
     agent: str
+    name: str = ""
+    flight: int = 1
     map_id: str
     n_kf: int
     n_mp: int
@@ -38,6 +43,8 @@ class KeyframeOut(BaseModel):
 
 class TrajectoryOut(BaseModel):
     agent: str
+    name: str = ""
+    flight: int = 1
     map_id: str
     frame: str = "map"
     keyframes: list[KeyframeOut]

@@ -248,11 +248,11 @@ def build_chunk(
             sent.add(kf.gid)
     # Agent of each point from its gid's high bits, looked up once per agent.
     ai, inv = np.unique(agent_index_of(mp_gids), return_inverse=True)
-    lut = np.array([names.get(int(a), "") for a in ai.tolist()], dtype=object)
+    lut = np.array([label(h, names.get(int(a), "")) for a in ai.tolist()], dtype=object)
     mp_agents = lut[inv].tolist() if len(mp_gids) else []
     return MapChunk(
-        agent=h.agent, map_id=smap.map_id, kf_ref=h.kf_ref,
-        kf_agents=[kf.agent for kf in kfs],
+        agent=h.name, map_id=smap.map_id, kf_ref=h.kf_ref,
+        kf_agents=[label(h, kf.agent) for kf in kfs],
         kf_ids=np.array([kf.id for kf in kfs], np.int64),
         T_ref_kf=np.stack([_pose_in(R_a, t_a, s_a, kf.T_m_kf) for kf in kfs]),
         kf_keypoints=kp, kf_descriptors=desc, kf_mp_index=idx,
@@ -266,10 +266,20 @@ def build_chunk(
     )  # fmt: skip
 
 
+def label(h: AgentHandler, agent: str) -> str:
+    """How a chunk for ``h``'s agent names the keyframes and points of stored agent
+    ``agent``: the agent knows its own (this flight's) under the id it flies as; an
+    earlier flight stored under that same id is another agent to it, so it gets a name
+    no agent id can have (ids never contain ``#``; see ``sessions``)."""
+    if agent == h.agent:
+        return h.name
+    return f"{agent}#" if agent == h.name else agent
+
+
 def _correction_only(h: AgentHandler, now_ns: int, S_g_l: np.ndarray) -> MapChunk:
     none = np.zeros(0, np.int64)
     return MapChunk(
-        agent=h.agent, map_id=h.smap.map_id, kf_ref=h.kf_ref, kf_agents=[], kf_ids=none,
+        agent=h.name, map_id=h.smap.map_id, kf_ref=h.kf_ref, kf_agents=[], kf_ids=none,
         T_ref_kf=np.zeros((0, 4, 4)), kf_keypoints=[], kf_descriptors=[], kf_mp_index=[],
         mp_agents=[], mp_ids=none, p_ref=np.zeros((0, 3)),
         mp_descriptors=np.zeros((0, 32), np.uint8), sent_ns=now_ns, S_g_l=S_g_l,

@@ -10,8 +10,10 @@ the new owner).
 
 How an agent's traffic reaches its map's owner: every mapper subscribes to every
 agent's keys (``hivemap/agent/*/up/kf``) and each keeps the batches of the agents whose
-map it owns, reading the agent id from the key before decoding anything (a per-agent
-key expression, so the others' batches cost a dictionary look-up). Why not per-map key
+map it owns, reading the agent id from the key and its session from the payload
+(``shared.messages.peek_session``, a few microseconds) before decoding anything: the pair
+names the flight, whose stored agent id is what owns a map (``sessions``), so the others'
+batches cost a dictionary look-up (a flight not named yet is decoded first). Why not per-map key
 expressions or a forwarding mapper: an agent learns its map id from its acks, and a
 merge changes it, so an agent publishing per map would lose batches at every merge
 until it heard the new id; forwarding would add a hop and a second copy of each batch

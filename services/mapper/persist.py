@@ -106,6 +106,7 @@ def load_all(
         smap = maps.setdefault(map_id, ServerMap(map_id))
         ah = AgentHandler(agent, st.index, smap, st.S_m_l, params, st.lam)
         ah.aliases = aliases
+        ah.name = st.name or agent
         if st.calib is not None:
             ah.camera = PinholeRadTan.from_array(st.calib)
         for kid, entry in store.removed(agent).items():

@@ -100,7 +100,8 @@ class AgentHandler:
         params: MapperParams | None = None,
         lam: float = 1.0,
     ) -> None:
-        self.agent = agent
+        self.agent = agent  # the stored agent id (of this flight: services/mapper/sessions.py)
+        self.name = agent  # the agent id it flies as: acks and map chunks go there
         self.index = index
         self.smap = smap
         self.S_m_l = S_m_l or Sim3.identity()

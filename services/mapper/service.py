@@ -52,7 +52,7 @@ import redis
 from shared import keys
 from shared.geometry import Sim3
 from shared.leases import Fenced
-from shared.messages import Ack, DecodeError, KeyframeBatch, Match, PoseUpdate, packb
+from shared.messages import Ack, DecodeError, KeyframeBatch, Match, PoseUpdate, packb, peek_session
 from shared.metrics import KEYFRAME_LATENCY, MAP_SIZE, PROCESSING, REJECTED, STORED, UP
 from shared.settings import Settings
 from shared.store import LivePose, Store, connect
@@ -83,6 +83,7 @@ from .redundancy import find_redundant
 from .registration import AgentHandler, MapperParams
 from .registry import MapRegistry
 from .server_map import ServerMap, digest
+from .sessions import Flights
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -276,6 +277,7 @@ class MapperService:
         self.settings = settings
         self.params = MapperParams.from_settings(settings.mapper)
         self.store = Store(connect(settings.redis_url))
+        self.flights = Flights(self.store)
         self._stop = threading.Event()
         self.registry = MapRegistry(self._new_actor)
         self._threads: list[threading.Thread] = []
@@ -326,10 +328,16 @@ class MapperService:
                      extra={"agent": h.agent})  # fmt: skip
 
     def handler(
-        self, agent: str, map_id: str | None = None, S_m_l: Sim3 | None = None
+        self,
+        agent: str,
+        map_id: str | None = None,
+        S_m_l: Sim3 | None = None,
+        name: str | None = None,
     ) -> AgentHandler:
         """The agent's handler, created on first contact with a map of its own, or
-        in ``map_id`` through ``S_m_l`` (an agent joining a known map)."""
+        in ``map_id`` through ``S_m_l`` (an agent joining a known map). ``agent``: the
+        stored agent id of the flight; ``name``: the id it flies as (default
+        ``agent``; see ``sessions``)."""
         reg = self.registry
         h = reg.handler(agent)
         if h is not None:
@@ -344,6 +352,7 @@ class MapperService:
                 reg.names[idx] = agent
                 smap = reg.ensure_map(new_map)
                 h = AgentHandler(agent, idx, smap, S_m_l or Sim3.identity(), self.params)
+                h.name = name or agent
                 h.aliases = reg.aliases
                 pipe = self.own.pipeline(smap.map_id)
                 persist.write_handler(pipe, h, new=True)
@@ -382,7 +391,7 @@ class MapperService:
         batch = self.decode_kf(key, payload)
         if batch is None:
             return None
-        h = self.handler(batch.agent)
+        h = self.handler(self.flights.name(batch.agent, batch.session), name=batch.agent)
         with self.actor(h.map_id).lock:
             ack = self.apply(h, batch, recv_ns)
             self.fuse(h.smap)
@@ -500,7 +509,7 @@ class MapperService:
                 continue  # nothing sent (KF_ref not registered yet): no rate limit either
             self._fb_last[h.agent] = now
             data = chunk.encode()
-            self.bus.put(keys.agent_map(h.agent), data, reliable=False)
+            self.bus.put(keys.agent_map(h.name), data, reliable=False)
             FEEDBACK_BYTES.labels(h.agent).inc(len(data))
 
     def process_pose_bytes(self, key: str, payload: bytes, recv_ns: int) -> LivePose | None:
@@ -521,13 +530,14 @@ class MapperService:
         return p
 
     def store_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
-        h = self.registry.handler(p.agent)
+        agent = self.flights.known(p.agent, p.session)
+        h = None if agent is None else self.registry.handler(agent)
         if h is None:
             return None  # no keyframe yet: no map frame to place it in
         T = h.pose_of(p.kf_ref, p.T_ref_c)
         if T is None:
             return None
-        pose = LivePose(p.agent, h.map_id, p.stamp_ns, T, p.kf_ref, p.tracking, p.fps, recv_ns)
+        pose = LivePose(h.agent, h.map_id, p.stamp_ns, T, p.kf_ref, p.tracking, p.fps, recv_ns)
         self.store.put_pose(pose)
         return pose
 
@@ -611,18 +621,26 @@ class MapperService:
         OVERLOAD_LEVEL.set(level)
 
     def _dispatch(self, item: Received) -> None:
+        # The flight's stored agent id, from the key and the session read ahead of the
+        # decode (``sessions``): a flight named already is routed without decoding.
         agent = keys.agent_of(item.key)
-        if agent is not None and not self.serves(agent):
-            return  # another mapper owns this agent's map
+        name = None if agent is None else self.flights.known(agent, peek_session(item.payload))
+        if name is not None and not self.serves(name):
+            return  # another mapper owns this flight's map
         batch = self.decode_kf(item.key, item.payload)
-        if batch is not None:
-            try:
-                h = self.handler(batch.agent)
-            except Fenced as e:
-                log.info("batch of %s left to another mapper: %s", batch.agent, e)
+        if batch is None:
+            return
+        if name is None:  # a new flight: named once its first batch decodes
+            name = self.flights.name(batch.agent, batch.session)
+            if not self.serves(name):
                 return
-            if self.registry.is_local(h.map_id):
-                self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
+        try:
+            h = self.handler(name, name=batch.agent)
+        except Fenced as e:
+            log.info("batch of %s left to another mapper: %s", name, e)
+            return
+        if self.registry.is_local(h.map_id):
+            self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
 
     # --- ownership (services/mapper/ownership.py) ---------------------------------------
     def serves(self, agent: str) -> bool:
@@ -790,7 +808,7 @@ class MapperService:
             items += get_all(self.pose_q)
             # Every message is decoded (bad ones are counted); the newest good one per
             # agent is stored.
-            newest: dict[str, tuple[PoseUpdate, int]] = {}
+            newest: dict[tuple[str, int | None], tuple[PoseUpdate, int]] = {}
             for item in items:
                 try:
                     p = self.decode_pose(item.key, item.payload)
@@ -798,7 +816,7 @@ class MapperService:
                     log.exception("pose failed", extra={"key": item.key})
                     continue
                 if p is not None:
-                    newest[p.agent] = (p, item.recv_ns)
+                    newest[(p.agent, p.session)] = (p, item.recv_ns)
             now = time.monotonic()
             for p, recv_ns in newest.values():
                 if self.level >= POSES:

@@ -36,7 +36,8 @@ def list_agents(store: StoreDep) -> list[AgentOut]:
             continue
         doc = store.latest_pose(a)
         out.append(AgentOut(
-            agent=a, map_id=info["map_id"], n_kf=info["n_kf"], n_mp=info["n_mp"],
+            agent=a, name=info["name"], flight=info["flight"], map_id=info["map_id"],
+            n_kf=info["n_kf"], n_mp=info["n_mp"],
             scale_to_map=info["S_m_l"].s, last_pose=pose_out(doc) if doc else None,
         ))  # fmt: skip
     return out
@@ -53,7 +54,8 @@ def latest_pose(agent: str, store: StoreDep) -> PoseOut:
 
 @router.get("/{agent}/trajectory", response_model=TrajectoryOut)
 def trajectory(agent: str, store: StoreDep, format: TrajFormat = TrajFormat.json):
-    """Keyframe trajectory in the agent's current server-map frame. ``format=tum``
+    """Keyframe trajectory of one flight (``agent`` as ``GET /agents`` lists it) in its
+    current server-map frame. ``format=tum``
     gives ``t x y z qx qy qz qw`` lines, t in seconds with nanosecond digits."""
     info = _info(store, agent)
     ids, stamps, poses = store.trajectory(agent)
@@ -63,4 +65,5 @@ def trajectory(agent: str, store: StoreDep, format: TrajFormat = TrajFormat.json
     for i, t, T in zip(ids.tolist(), stamps.tolist(), poses, strict=True):
         p, q = pose_to_tq(T)
         kfs.append(KeyframeOut(id=i, stamp_ns=t, position=p.tolist(), quaternion_xyzw=q.tolist()))
-    return TrajectoryOut(agent=agent, map_id=info["map_id"], keyframes=kfs)
+    return TrajectoryOut(agent=agent, name=info["name"], flight=info["flight"],
+                         map_id=info["map_id"], keyframes=kfs)  # fmt: skip
