@@ -148,11 +148,14 @@ def test_garbage_on_every_subscribed_key_is_counted_and_service_keeps_serving(
         _, _, kf = sneaky.step()
         from shared.messages import KeyframeBatch
 
-        spoof = KeyframeBatch("H", 0, 0, 0, [kf.kf]).encode()
+        # And G's own batches with a session that is not one (a negative, a string).
+        spoofs = [KeyframeBatch("H", 0, 0, 0, [kf.kf]).encode(),
+                  KeyframeBatch("G", 0, 0, 0, [kf.kf], session=-1).encode(),
+                  KeyframeBatch("G", 0, 0, 0, [kf.kf], session="x").encode()]  # fmt: skip
         deadline = time.monotonic() + 10
         while not valid.comm.acked_kfs and time.monotonic() < deadline:
             time.sleep(0.05)  # G is flying and subscribed to its acks
-        for g in [*GARBAGE, spoof]:
+        for g in [*GARBAGE, *spoofs]:
             bus.put(kf_key, g)
             bus.put(pose_key, g)
         # The agent's own subscription (acks) gets garbage as well.
@@ -160,17 +163,18 @@ def test_garbage_on_every_subscribed_key_is_counted_and_service_keeps_serving(
             bus.put(ack_key, g)
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and (
-            rejected(kf_key) - before[0] < len(GARBAGE) + 1
-            or rejected(pose_key) - before[1] < len(GARBAGE) + 1
+            rejected(kf_key) - before[0] < len(GARBAGE) + len(spoofs)
+            or rejected(pose_key) - before[1] < len(GARBAGE) + len(spoofs)
         ):
             time.sleep(0.05)
         bus.close()
     t.join(60)
-    assert rejected(kf_key) - before[0] == len(GARBAGE) + 1
-    assert rejected(pose_key) - before[1] == len(GARBAGE) + 1
+    assert rejected(kf_key) - before[0] == len(GARBAGE) + len(spoofs)
+    assert rejected(pose_key) - before[1] == len(GARBAGE) + len(spoofs)
     agent_after = sample_value("hivemap_messages_rejected_total", agent_labels)
     assert agent_after - agent_before == len(GARBAGE)
     assert Store(connect(settings.redis_url)).keyframe_ids("H") == []
+    assert Store(connect(settings.redis_url)).agents() == ["G"]  # no flight of garbage
     # Both services kept serving: the valid agent was fully stored and acked.
     stats = result["stats"]
     assert stats.all_acked and stats.keyframes > 0

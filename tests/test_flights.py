@@ -164,6 +164,9 @@ def test_bad_sessions_are_counted_as_rejected(redis_url, world):
     assert svc.store.agents() == []
     b.session = 3
     assert peek_session(b.encode(compact=True)) == 3
+    assert KeyframeBatch.decode(b.encode()).session == 3
+    p = PoseUpdate("A", 1, np.eye(4), 0, np.eye(4), session=2**63 - 1)
+    assert PoseUpdate.decode(p.encode()).session == 2**63 - 1
     for garbage in (b"", b"\x81\xa7session", b"\xc1" * 9, b"\x93\x01\x02\x03"):
         assert peek_session(garbage) is None
     svc.store.close()
