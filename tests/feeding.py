@@ -4,6 +4,7 @@ server map, without transport (tests, and bench/bench_mapper.py)."""
 from __future__ import annotations
 
 import random
+import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -20,8 +21,9 @@ from shared.trajectory import Trajectory
 def feed(agent: str, sim: SimAgent, apply: Callable) -> None:
     """Every keyframe of ``sim`` as one batch: ``apply(message, t, step)`` (``step``
     what ``sim.step()`` returned, ``t`` the agent's clock, one second a keyframe)
-    returns the ack the agent gets back."""
-    comm = CommModule(agent, rate_hz=1e9)
+    returns the ack the agent gets back. Calls for one agent id are one flight (one
+    session, see services/mapper/sessions.py): a test may fly an agent on in steps."""
+    comm = CommModule(agent, rate_hz=1e9, session=zlib.crc32(agent.encode()))
     t = 0.0
     while not sim.done:
         step = sim.step()
