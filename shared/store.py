@@ -106,12 +106,14 @@ _AGENT_INDEX, _AGENT_INDEX_NEXT = f"{_P}:agent_index", f"{_P}:agent_index_next"
 MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
 
 
-# KEYS: hm:agent:{a}:sessions, hm:flights, hm:agents. ARGV: a, session, "hm:agent:"
-# (the new name's hash gets name, session and flight in the same step). The name of a
-# new flight: {a} for the first, else {a}.sN with N its flight number, skipping names
-# another flight holds, and {a} itself when it already names a flight or stored data
-# of an agent from before sessions (that data is its flight 1). A suffixed name is cut
-# to 60 characters, so its map id ("map-" + name) is a valid id.
+# KEYS: hm:agent:{a}:sessions, hm:flights, hm:agents, hm:agent:{a}:kfs,
+# hm:agent:{a}:removed. ARGV: a, session, "hm:agent:" (the new name's hash gets name,
+# session and flight in the same step). The name of a new flight: {a} for the first,
+# else {a}.sN with N its flight number, skipping names another flight or agent holds;
+# {a} itself is skipped when it names a flight already or holds keyframes (stored by an
+# agent from before sessions: that data is its flight 1), not for an agent registered
+# without any (a handler made ahead of the flight). A suffixed name is cut to 60
+# characters, so its map id ("map-" + name) is a valid id.
 _NAME_FLIGHT = """
 local got = redis.call('HGET', KEYS[1], ARGV[2])
 if got then return got end
@@ -122,8 +124,13 @@ while true do
     local suffix = '.s' .. e
     name = string.sub(ARGV[1], 1, 60 - #suffix) .. suffix
   end
-  if redis.call('HEXISTS', KEYS[2], name) == 0 and
-     redis.call('SISMEMBER', KEYS[3], name) == 0 then
+  local taken = redis.call('HEXISTS', KEYS[2], name) == 1
+  if e == 1 then
+    taken = taken or redis.call('EXISTS', KEYS[4], KEYS[5]) > 0
+  else
+    taken = taken or redis.call('SISMEMBER', KEYS[3], name) == 1
+  end
+  if not taken then
     redis.call('HSET', KEYS[2], name, ARGV[1])
     redis.call('HSET', KEYS[1], ARGV[2], name)
     redis.call('HSET', ARGV[3] .. name, 'name', ARGV[1], 'session', ARGV[2], 'flight', e)
@@ -286,8 +293,9 @@ class Store:
     def flight(self, agent: str, session: int) -> str:
         """The agent id the flight ``session`` of ``agent`` is stored under, named on
         first call (atomic across mappers; see ``_NAME_FLIGHT``)."""
-        got = self._name_flight(keys=[_k("agent", agent, "sessions"), _FLIGHTS, _AGENTS],
-                                args=[agent, str(session), _k("agent", "")])  # fmt: skip
+        ks = [_k("agent", agent, "sessions"), _FLIGHTS, _AGENTS, _k("agent", agent, "kfs"),
+              _k("agent", agent, "removed")]  # fmt: skip
+        got = self._name_flight(keys=ks, args=[agent, str(session), _k("agent", "")])
         return got.decode() if isinstance(got, bytes) else got
 
     def flight_of(self, agent: str, session: int) -> str | None:

@@ -138,6 +138,10 @@ def test_flights_of_data_from_before_sessions_and_of_taken_names(redis_url, worl
     assert store.flight("X", 1) == "X" and store.flight("X.s2", 1) == "X.s2"
     assert store.flight("X", 2) == "X.s3" and store.flight("X", 1) == "X"
     assert store.flight("X.s2", 2) == "X.s2.s2"
+    # An agent registered ahead of its flight, without keyframes (as a test or bench
+    # puts agents into one map): its first flight is it.
+    svc.handler("P", "map-shared")
+    assert store.flight("P", 5) == "P" and store.flight("P", 6) == "P.s2"
     long = "L" * 64
     name = store.flight(long, 1), store.flight(long, 2)
     assert name[0] == long and len(name[1]) <= 60 and name[1].endswith(".s2")
