@@ -59,6 +59,10 @@ def _stored_keyframes() -> float:
     return sample_value("hivemap_stored_total", {"service": "mapper", "kind": "keyframe"})
 
 
+def _duplicates() -> float:
+    return sample_value("hivemap_registration_events_total", {"what": "duplicate"})
+
+
 def test_resends_within_a_flight_are_deduplicated_and_a_second_flight_is_stored(redis_url, world):
     s = Settings(redis_url=redis_url)
     svc = MapperService(s)
@@ -69,11 +73,11 @@ def test_resends_within_a_flight_are_deduplicated_and_a_second_flight_is_stored(
         assert ack.map_id == "map-A" and list(ack.kf_ids) == [k.id for k in b.new_kfs]
     assert store.keyframe_ids("A") == list(range(6))
     # Resends within the flight: acknowledged, stored once.
-    before = _stored_keyframes()
+    before, dup = _stored_keyframes(), _duplicates()
     for b in (first[2], first[5], first[0]):
         ack = _put(svc, b)
         assert list(ack.kf_ids) == [k.id for k in b.new_kfs] and ack.map_id == "map-A"
-    assert _stored_keyframes() == before
+    assert _stored_keyframes() == before and _duplicates() == dup + 3
     assert store.agents() == ["A"] and store.keyframe_ids("A") == list(range(6))
     # A mapper restarted from Redis takes the flight's resends as resends too.
     svc.store.close()
@@ -82,6 +86,7 @@ def test_resends_within_a_flight_are_deduplicated_and_a_second_flight_is_stored(
     ack = _put(svc, first[5])
     assert list(ack.kf_ids) == [first[5].new_kfs[0].id] and ack.map_id == "map-A"
     assert _stored_keyframes() == before and svc.store.agents() == ["A"]
+    assert _duplicates() == dup + 4
     # A second flight of A (a new process: a new session), elsewhere, ids from 0 again:
     # stored in full, as an agent of its own with a map of its own.
     second = _batches(world, "MH03", slice(300, 700), session=12, n=5)
@@ -90,7 +95,7 @@ def test_resends_within_a_flight_are_deduplicated_and_a_second_flight_is_stored(
         ack = _put(svc, b)
         assert ack.agent == "A" and ack.map_id == "map-A.s2"
         assert list(ack.kf_ids) == [k.id for k in b.new_kfs]
-    assert _stored_keyframes() == before + 5
+    assert _stored_keyframes() == before + 5 and _duplicates() == dup + 4  # none dropped
     store = svc.store
     assert store.agents() == ["A", "A.s2"]
     assert store.keyframe_ids("A") == list(range(6)) and store.keyframe_ids("A.s2") == list(
