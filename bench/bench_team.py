@@ -42,6 +42,7 @@ from services.team_cli import run_team  # noqa: E402
 from shared import keys  # noqa: E402
 from shared.geometry import Sim3, rotation_angle, se3_inv  # noqa: E402
 from shared.messages import Ack, CorrectionMsg, KeyframeBatch, KeyframeEvent, Match  # noqa: E402
+from shared.metrics import series_key  # noqa: E402
 from shared.settings import Settings, ZenohSettings  # noqa: E402
 from shared.trajectory import Trajectory, ate, load_euroc_gt, read_tum  # noqa: E402
 from shared.transport import Bus, open_session  # noqa: E402
@@ -261,7 +262,8 @@ def mapper_instances(stack, scale) -> list[dict]:
         m = scrape(f"http://127.0.0.1:{plan[c.name].http_port}/metrics")
         out.append({"instance": c.name, "restarts": c.restarts, **{
             k: m.get(name, 0.0) for k, name in (
-                ("keyframes", 'hivemap_stored_total{service="mapper",kind="keyframe"}'),
+                ("keyframes", series_key("hivemap_stored_total",
+                                         {"service": "mapper", "kind": "keyframe"})),
                 ("maps_owned", "hivemap_mapper_maps_owned"),
                 ("takeovers", "hivemap_mapper_takeovers"),
                 ("handovers", "hivemap_mapper_handovers"),

@@ -76,14 +76,11 @@ def stack_settings(**kw):
 
 
 def scrape(url: str) -> dict[str, float]:
-    """A Prometheus text page: ``name{labels}`` -> value."""
-    text = urllib.request.urlopen(url, timeout=5).read().decode()
-    out = {}
-    for ln in text.splitlines():
-        if ln and not ln.startswith("#"):
-            k, _, v = ln.rpartition(" ")
-            out[k] = float(v)
-    return out
+    """A Prometheus text page: ``name{labels}`` (labels sorted by name:
+    ``shared.metrics.series_key``) -> value."""
+    from shared.metrics import parse_exposition
+
+    return parse_exposition(urllib.request.urlopen(url, timeout=5).read().decode())
 
 
 def mapper_metrics(stack) -> dict[str, float]:

@@ -6,6 +6,8 @@ that runs several services in one process still tells them apart.
 
 from __future__ import annotations
 
+import re
+
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
     REGISTRY,
@@ -88,3 +90,29 @@ def serve_metrics(host: str, port: int) -> None:
 def sample_value(name: str, labels: dict[str, str]) -> float:
     v = REGISTRY.get_sample_value(name, labels)
     return 0.0 if v is None else float(v)
+
+
+_LABEL = re.compile(r'(\w+)="((?:[^"\\]|\\.)*)"')
+
+
+def series_key(name: str, labels: dict[str, str] | None = None) -> str:
+    """``name{a="x",b="y"}`` with the labels sorted by name: how ``parse_exposition``
+    keys a series, whatever order the labels were declared or written in (the client
+    library writes them sorted, so a key written in declaration order, as bench_team's
+    per-mapper ``hivemap_stored_total{service=..,kind=..}`` was, never matched)."""
+    if not labels:
+        return name
+    return name + "{" + ",".join(f'{k}="{v}"' for k, v in sorted(labels.items())) + "}"
+
+
+def parse_exposition(text: str) -> dict[str, float]:
+    """A Prometheus text page (what /metrics serves): ``series_key`` -> value."""
+    out = {}
+    for ln in text.splitlines():
+        if not ln or ln.startswith("#"):
+            continue
+        k, _, v = ln.rpartition(" ")
+        name, brace, rest = k.partition("{")
+        labels = dict(_LABEL.findall(rest)) if brace else None
+        out[series_key(name, labels)] = float(v)
+    return out
