@@ -173,3 +173,47 @@ def test_viewer_events_are_merges_and_new_loops():
     (loop,) = diff_events(b, c)
     assert loop["kind"] == "loop" and loop["map_id"] == "m0"
     assert diff_events(c, c) == []
+
+
+def test_ws_poses_lets_go_of_a_client_that_left_while_no_pose_came(redis_url):
+    """/ws/poses waited only for poses: with none flowing it never noticed a client that
+    had gone (closed, or its connection dropped without a close frame), and kept its
+    handler and Redis subscription for as long as the API ran."""
+    import socket
+    import threading
+
+    import redis
+    import uvicorn
+    import websockets.sync.client as ws_client
+    from procs import wait_until
+
+    from shared.redis_server import free_port
+    from shared.store import POSE_CHANNEL
+
+    port = free_port()
+    app = create_app(Settings(redis_url=redis_url))
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    t = threading.Thread(target=server.run, daemon=True)
+    t.start()
+    r = redis.Redis.from_url(redis_url)
+
+    def subscribers() -> int:
+        return int(r.pubsub_numsub(POSE_CHANNEL)[0][1])
+
+    try:
+        assert wait_until(lambda: server.started, 10)
+        for polite in (False, True):
+            with ws_client.connect(f"ws://127.0.0.1:{port}/ws/poses", open_timeout=10) as ws:
+                assert json.loads(ws.recv(timeout=10))["type"] == "subscribed"
+                assert subscribers() == 1
+                if polite:
+                    ws.close()
+                else:  # gone without a close frame: the TCP connection just ends
+                    ws.socket.shutdown(socket.SHUT_RDWR)
+                    ws.socket.close()
+                gone = wait_until(lambda: subscribers() == 0, 5)
+            assert gone, f"the handler kept its subscription ({polite=})"
+    finally:
+        server.should_exit = True
+        t.join(10)
+        r.close()

@@ -11,12 +11,11 @@ since the previous one, and a map's ``points`` again when it grew (at most every
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import time
 
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, WebSocket
 
 from shared.messages import DecodeError
 from shared.store import POSE_CHANNEL, LivePose
@@ -24,7 +23,7 @@ from shared.store import POSE_CHANNEL, LivePose
 from .. import feed
 from ..models import pose_out
 from ..security import refused
-from .ws import pose_subscription
+from .ws import pose_subscription, until_gone
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -85,23 +84,7 @@ async def _state(ws: WebSocket) -> None:
 async def ws_viewer(ws: WebSocket) -> None:
     if await refused(ws):
         return
-    tasks: list[asyncio.Task] = []
     async with pose_subscription(ws) as pubsub:
-        try:
-            await _send(ws, {"type": "hello", "points_cap": feed.POINTS_CAP,
-                             "disconnected_after_s": feed.DISCONNECTED_AFTER_S})  # fmt: skip
-            tasks = [asyncio.create_task(_poses(ws, pubsub)), asyncio.create_task(_state(ws))]
-            # The client sends nothing; receive() returns when it goes away.
-            tasks.append(asyncio.create_task(ws.receive()))
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-            for t in done:
-                e = t.exception()
-                ended = (WebSocketDisconnect, OSError, RuntimeError)
-                if e is not None and not isinstance(e, ended):
-                    log.error("viewer feed failed", exc_info=e)
-        finally:
-            for t in tasks:
-                t.cancel()
-            for t in tasks:
-                with contextlib.suppress(BaseException):
-                    await t
+        await _send(ws, {"type": "hello", "points_cap": feed.POINTS_CAP,
+                         "disconnected_after_s": feed.DISCONNECTED_AFTER_S})  # fmt: skip
+        await until_gone(ws, "viewer feed", _poses(ws, pubsub), _state(ws))

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Coroutine
 
 import redis.asyncio as aioredis
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -41,6 +42,49 @@ async def pose_subscription(ws: WebSocket) -> AsyncIterator[PubSub]:
         await r.aclose()
 
 
+async def _gone(ws: WebSocket) -> None:
+    """Returns when the client has gone (it sends nothing that matters)."""
+    while (await ws.receive())["type"] != "websocket.disconnect":
+        pass
+
+
+async def until_gone(ws: WebSocket, what: str, *feeds: Coroutine) -> None:
+    """Runs ``feeds`` (what the socket pushes) until one ends or the client goes away.
+    A feed notices a client that left only when a send fails, and with nothing to send
+    (no agent flying) that was never: a closed or dropped connection kept its handler,
+    its Redis subscription and the client gauge for as long as the API ran. The client
+    sends nothing, so a ``receive()`` waiting beside the feeds returns at the
+    disconnect (a close, the TCP connection ending, or the server's pings going
+    unanswered) and ends them."""
+    tasks = [asyncio.create_task(c) for c in feeds]
+    tasks.append(asyncio.create_task(_gone(ws)))
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for t in done:
+            e = t.exception()
+            if e is not None and not isinstance(e, (WebSocketDisconnect, OSError, RuntimeError)):
+                log.error("%s failed", what, exc_info=e)
+    finally:
+        for t in tasks:
+            t.cancel()
+        for t in tasks:
+            with contextlib.suppress(BaseException):
+                await t
+
+
+async def _forward(ws: WebSocket, pubsub: PubSub) -> None:
+    while True:
+        msg = await pubsub.get_message(ignore_subscribe_messages=True, timeout=1.0)
+        if msg is None:
+            continue
+        try:
+            doc = pose_out(LivePose.decode(msg["data"]))
+        except DecodeError as e:
+            log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
+            continue
+        await ws.send_text(json.dumps({"type": "pose", **doc.model_dump()}))
+
+
 @router.websocket("/ws/poses")
 async def ws_poses(ws: WebSocket) -> None:
     if await refused(ws):
@@ -49,13 +93,4 @@ async def ws_poses(ws: WebSocket) -> None:
         # The subscription is live before the client hears anything, so a pose
         # published after this message is never missed.
         await ws.send_text(json.dumps({"type": "subscribed"}))
-        while True:
-            msg = await pubsub.get_message(ignore_subscribe_messages=True, timeout=1.0)
-            if msg is None:
-                continue
-            try:
-                doc = pose_out(LivePose.decode(msg["data"]))
-            except DecodeError as e:
-                log.warning("bad pose on %s: %s", POSE_CHANNEL, e)
-                continue
-            await ws.send_text(json.dumps({"type": "pose", **doc.model_dump()}))
+        await until_gone(ws, "pose feed", _forward(ws, pubsub))
