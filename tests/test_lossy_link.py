@@ -46,6 +46,22 @@ def keyframes():
     return out
 
 
+def _indexed(comm: CommModule) -> bool:
+    """The communication module's by-message indexes of what is in flight name exactly
+    the items in flight, each under the message that carries it."""
+    points = {i: (s.seq, None) for i, s in comm.sent_mps.items()}
+    for by, items in ((comm._mps_by_seq, points), (comm._upd_kf_sent, None),
+                      (comm._upd_mp_sent, None)):  # fmt: skip
+        items = by.items if items is None else items
+        if by.items.keys() != items.keys():
+            return False
+        if {(q, i) for q, ids in by.seqs.items() for i in ids} != {
+            (q, i) for i, (q, _) in items.items()
+        } or not all(by.seqs.values()):
+            return False
+    return True
+
+
 def _fly(keyframes, drop=0.0, delay=0.0, jitter=0.0, seed=0):
     """Returns the handler, the agent's final poses and its communication module."""
     rng, nrng = random.Random(seed), np.random.default_rng(1)
@@ -86,6 +102,7 @@ def _fly(keyframes, drop=0.0, delay=0.0, jitter=0.0, seed=0):
             comm.add_map_points(keyframes[n].new_mps)
             n += 1
         comm.check_timeouts(t)
+        assert _indexed(comm)
         m = comm.next_message(t, int(t * 1e9), ids[-1])
         if m is not None and rng.random() >= drop:
             lag = max(delay + rng.uniform(-jitter, jitter), 0.0)

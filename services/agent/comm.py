@@ -85,6 +85,45 @@ class _Sent:
     timeout: float = 0.0  # resend unless acked or held within this long of ``t``
 
 
+class _BySeq:
+    """Items on their way, ``id -> (seq of the message that carried them, data)``, found
+    by id and by message: an answer or a timeout of one message takes its items without
+    a scan of everything in flight."""
+
+    def __init__(self) -> None:
+        self.items: dict[int, tuple[int, object]] = {}
+        self.seqs: dict[int, set[int]] = {}
+
+    def __contains__(self, i: int) -> bool:
+        return i in self.items
+
+    def put(self, i: int, seq: int, data: object = None) -> None:
+        self.pop(i)  # a newer send of the same item: the older message no longer has it
+        self.items[i] = (seq, data)
+        self.seqs.setdefault(seq, set()).add(i)
+
+    def pop(self, i: int) -> tuple[int, object] | None:
+        e = self.items.pop(i, None)
+        if e is not None:
+            ids = self.seqs[e[0]]
+            ids.discard(i)
+            if not ids:
+                del self.seqs[e[0]]
+        return e
+
+    def of(self, seq: int) -> list[int]:
+        """The ids message ``seq`` carries, in id order."""
+        return sorted(self.seqs.get(seq, ()))
+
+    def take(self, seq: int) -> list[tuple[int, object]]:
+        """Removes and returns message ``seq``'s items, ``(id, data)`` in id order."""
+        return [(i, self.items.pop(i)[1]) for i in sorted(self.seqs.pop(seq, ()))]
+
+    def clear(self) -> None:
+        self.items.clear()
+        self.seqs.clear()
+
+
 @dataclass
 class CommStats:
     messages: int = 0
@@ -152,6 +191,7 @@ class CommModule:
         self.queued_mps: set[int] = set()
         self.sent_kfs: dict[int, _Sent] = {}
         self.sent_mps: dict[int, _Sent] = {}
+        self._mps_by_seq = _BySeq()  # the same points by message (sent_mps keeps the timing)
         self.first_sent_at: dict[int, float] = {}
         self.kf_updates: dict[int, KeyframeUpdate] = {}
         self.mp_updates: dict[int, tuple[int, np.ndarray]] = {}
@@ -159,10 +199,10 @@ class CommModule:
         self.acked_kfs: set[int] = set()
         self.forgotten: set[int] = set()  # dropped unacknowledged (may still arrive)
         self._last_seq_by_kf: dict[int, int] = {}
-        # Updates sent and not known to have arrived: id -> (seq of their message, data),
+        # Updates sent and not known to have arrived (id -> seq of their message, data),
         # and the messages that carried them: seq -> when sent, timeout.
-        self._upd_kf_sent: dict[int, tuple[int, KeyframeUpdate]] = {}
-        self._upd_mp_sent: dict[int, tuple[int, tuple[int, np.ndarray]]] = {}
+        self._upd_kf_sent = _BySeq()  # data: the KeyframeUpdate
+        self._upd_mp_sent = _BySeq()  # data: (ref kf, p_ref)
         self._upd_msgs: dict[int, _Sent] = {}
         self._seq_t: dict[int, float] = {}  # when each batch went out
         self.resent_reasons: dict[tuple[str, str], int] = {}
@@ -272,7 +312,7 @@ class CommModule:
                 kf.mp_ids = upd.mp_ids
             if upd.id not in self.first_sent_at:
                 self.kf_updates.pop(upd.id, None)
-                self._upd_kf_sent.pop(upd.id, None)  # older than the fold
+                self._upd_kf_sent.pop(upd.id)  # older than the fold
                 return
         prev = self.kf_updates.get(upd.id)
         if prev is not None and upd.mp_ids is None and prev.mp_ids is not None:
@@ -305,14 +345,14 @@ class CommModule:
         if i < len(self.queued_kfs) and self.queued_kfs[i] == kf_id:
             self.queued_kfs.pop(i)
         self.kf_updates.pop(kf_id, None)
-        self._upd_kf_sent.pop(kf_id, None)
+        self._upd_kf_sent.pop(kf_id)
 
     def forget_map_point(self, mp_id: int) -> None:
         self._mp_attempts.pop(mp_id, None)
         self.mps.pop(mp_id, None)
         self._after_ack.pop(mp_id, None)
         self.queued_mps.discard(mp_id)
-        self.sent_mps.pop(mp_id, None)
+        self._unsend_mp(mp_id)
 
     @property
     def unacked_kf_ids(self) -> set[int]:
@@ -358,7 +398,7 @@ class CommModule:
             upd = self._after_ack.pop(i, None)
             if upd is not None:
                 self.mp_updates[i] = upd
-            self.sent_mps.pop(i, None)
+            self._unsend_mp(i)
             self.queued_mps.discard(i)
             self._mp_attempts.pop(i, None)
         held = set() if ack.held_kf_ids is None else set(ack.held_kf_ids.tolist())
@@ -414,19 +454,16 @@ class CommModule:
             if s < seq:
                 self._requeue_updates(s, "gap")
             else:
-                for d in (self._upd_kf_sent, self._upd_mp_sent):
-                    for i in [i for i, (q, _) in d.items() if q == s]:
-                        del d[i]
+                self._upd_kf_sent.take(s)
+                self._upd_mp_sent.take(s)
 
     def _requeue_updates(self, seq: int, reason: str) -> None:
         n = 0
-        for i in [i for i, (q, _) in self._upd_kf_sent.items() if q == seq]:
-            upd = self._upd_kf_sent.pop(i)[1]
+        for i, upd in self._upd_kf_sent.take(seq):
             if i not in self.kf_updates:  # else a newer one waits already
                 self.kf_updates[i] = upd
                 n += 1
-        for i in [i for i, (q, _) in self._upd_mp_sent.items() if q == seq]:
-            upd = self._upd_mp_sent.pop(i)[1]
+        for i, upd in self._upd_mp_sent.take(seq):
             if i not in self.mp_updates and i not in self.mps:
                 self.mp_updates[i] = upd
                 n += 1
@@ -464,8 +501,8 @@ class CommModule:
         self.held.discard(i)
         if sent is not None:
             # Its points on their way in the same message were lost with it.
-            for j, s in list(self.sent_mps.items()):
-                if s.seq == sent.seq and self.mps.get(j, (-1,))[0] == i:
+            for j in self._mps_by_seq.of(sent.seq):
+                if self.mps.get(j, (-1,))[0] == i:
                     self._requeue_mp(j, reason)
         if i in self.kfs:
             j = bisect.bisect_left(self.queued_kfs, i)
@@ -473,8 +510,12 @@ class CommModule:
                 self.queued_kfs.insert(j, i)
                 self.resent_reasons[("kf", reason)] = self.resent_reasons.get(("kf", reason), 0) + 1
 
-    def _requeue_mp(self, i: int, reason: str) -> None:
+    def _unsend_mp(self, i: int) -> None:
         self.sent_mps.pop(i, None)
+        self._mps_by_seq.pop(i)
+
+    def _requeue_mp(self, i: int, reason: str) -> None:
+        self._unsend_mp(i)
         if i in self.mps and i not in self.queued_mps:
             self.queued_mps.add(i)
             self.resent_reasons[("mp", reason)] = self.resent_reasons.get(("mp", reason), 0) + 1
@@ -539,6 +580,7 @@ class CommModule:
             self.queued_mps.discard(i)
             n = self._mp_attempts[i] = self._mp_attempts.get(i, 0) + 1
             self.sent_mps[i] = _Sent(now, seq, self._timeout(n))
+            self._mps_by_seq.put(i, seq)
         budget -= len(mp_ids) * _MP_BYTES
         new_mps = self._pack_mps(mp_ids)
         self.stats.mp_sent += len(mp_ids)
@@ -546,7 +588,7 @@ class CommModule:
         for i in sorted(self.kf_updates)[: max(0, budget // _UPD_KF_BYTES)]:
             upd = self.kf_updates.pop(i)
             kf_upd.append(upd)
-            self._upd_kf_sent[i] = (seq, upd)
+            self._upd_kf_sent.put(i, seq, upd)
         budget -= len(kf_upd) * _UPD_KF_BYTES
         upd_ids = sorted(self.mp_updates)[: max(0, budget // 48)]
         mp_upd = MapPoints(
@@ -556,7 +598,7 @@ class CommModule:
             None,
         )
         for i in upd_ids:
-            self._upd_mp_sent[i] = (seq, self.mp_updates.pop(i))
+            self._upd_mp_sent.put(i, seq, self.mp_updates.pop(i))
         if not (new_kfs or mp_ids or kf_upd or upd_ids):
             return None  # all of it waits for the window (or its keyframe)
         if kf_upd or upd_ids:
