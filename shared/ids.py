@@ -5,6 +5,10 @@ An agent's keyframe and map-point ids are its own small integers; the mapper giv
 agent an index (``hm:agent_index`` in ``shared.store``) and the global id is
 ``agent_index << ID_BITS | local_id``, so ids from different agents never collide and
 arrays of ids stay plain int64. Every function works on ints and on numpy int arrays.
+
+Local ids restart from 0 in every flight, so each flight of an agent id is stored as an
+agent of its own, with its own index (``A``, ``A.s2``, ...: ``services/mapper/sessions.py``);
+a second flight never meets the first one's ids.
 """
 
 from __future__ import annotations
