@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_flight import flight_metrics  # noqa: E402
+from common import write_report  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.feedback import frame_correction  # noqa: E402
@@ -107,8 +108,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dump")
     ap.add_argument("out", help="the run's output directory (agentN_gt.tum)")
+    ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
     args = ap.parse_args()
-    rows, sums = [], np.zeros(3)
+    rows, sums, report = [], np.zeros(3), []
     for ag, a in runs(args.dump).items():
         gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
         st = a["vo"]["stamps"]
@@ -123,11 +125,26 @@ def main() -> int:
         sums += e
         fl = flight_metrics(Trajectory(st, cur), Trajectory(st, a["vo"]["T"]), gt)
         rows.append((ag, *e, fl["max_own_jump_5cm_m"], float(np.abs(again - rec).max())))
+        report.append({"agent": ag, "vo_ate_m": e[0], "recorded_ate_m": e[1], "current_ate_m": e[2],
+                       "max_own_jump_5cm_m": fl["max_own_jump_5cm_m"], "jumps_5cm": fl["jumps_5cm"],
+                       "replay_check": rows[-1][-1]})  # fmt: skip
     print(f"{'agent':8} {'vo_mm':>7} {'recorded_mm':>12} {'current_mm':>11} "
           f"{'own_jump>5cm_m':>15} {'replay_check':>13}")  # fmt: skip
     for ag, v, r, c, j, d in rows:
         print(f"{ag:8} {1e3 * v:7.2f} {1e3 * r:12.2f} {1e3 * c:11.2f} {j:15.3f} {d:13.1e}")
     print(f"{'sum':8} {1e3 * sums[0]:7.2f} {1e3 * sums[1]:12.2f} {1e3 * sums[2]:11.2f}")
+    if args.name:
+        # "current": this checkout's frame correction replayed on the recorded map states.
+        data = {
+            "dump": str(args.dump),
+            "run_out": str(args.out),
+            "agents": report,
+            "vo_sum_m": sums[0],
+            "recorded_sum_m": sums[1],
+            "current_sum_m": sums[2],
+        }
+        path = write_report(args.name, data)
+        print(f"written {path}")
     return 0
 
 
