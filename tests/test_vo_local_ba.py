@@ -127,3 +127,37 @@ def test_extractor_reaches_weakly_textured_cells():
     f = Extractor(cam, n_features=500)(_texture(rng, 0.5, cam.height, cam.width))
     cols = np.minimum(f.kp[:, 0] * 8 // cam.width, 7).astype(int)
     assert (np.bincount(cols, minlength=8) >= 10).all()
+
+
+def test_late_local_ba_moves_what_was_tracked_meanwhile_with_its_keyframe():
+    """A local BA that comes back from its worker after tracking went on: the window
+    takes the BA's poses, and the last tracked pose, a keyframe made meanwhile and the
+    points that keyframe added move rigidly with the window's newest keyframe (so the
+    motion model keeps predicting from where the moved map says the camera is). Points
+    the BA placed keep the BA's positions; the server's points stay."""
+    from services.agent.vo.local_ba import BAResult
+    from services.agent.vo.odometry import KeyFrame, MapPoint, VisualOdometry
+
+    vo = VisualOdometry(PinholeRadTan(752, 480, F, F, 376.0, 240.0))
+    feats = _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8))
+    for k in range(4):  # 0, 1 fixed; 2 in the BA window; 3 made while the BA ran
+        vo.kfs[k] = KeyFrame(k, k, se3(np.eye(3), [0.1 * k, 0, 0]), feats, np.full(4, -1))
+    d0 = np.zeros(32, np.uint8)
+    vo.mps = {i: MapPoint(i, np.array([float(i), 0, 5]), d0, first_kf=kf)
+              for i, kf in ((0, 0), (1, 3), (2, 3))}  # fmt: skip
+    vo.foreign[2] = ("other", 7)
+    vo.T_last = se3(np.eye(3), [0.35, 0, 0])
+    vo.velocity = se3(np.eye(3), [0.05, 0, 0])
+    delta = se3(exp_so3([0.0, 0.01, 0.0]), [0.0, 0.02, 0.0])
+    moved = delta @ vo.kfs[2].T_w_c
+    kf2, kf3, T_last = vo.kfs[2].T_w_c.copy(), vo.kfs[3].T_w_c.copy(), vo.T_last.copy()
+    vo._apply_ba(BAResult({2: moved}, {0: np.array([0.0, 0.01, 5])}, [], 3, 1.0, 0.5))
+    assert np.allclose(vo.kfs[2].T_w_c, moved)
+    assert np.allclose(vo.kfs[3].T_w_c, delta @ kf3)
+    assert np.allclose(vo.T_last, delta @ T_last)
+    # Relative to the moved keyframe, the last pose and the prediction are unchanged.
+    assert np.allclose(np.linalg.inv(vo.kfs[2].T_w_c) @ vo.T_last, np.linalg.inv(kf2) @ T_last)
+    assert np.allclose(vo.mps[0].pos, [0.0, 0.01, 5])  # the BA's own
+    assert np.allclose(vo.mps[1].pos, delta[:3, :3] @ [1.0, 0, 5] + delta[:3, 3])
+    assert np.allclose(vo.mps[2].pos, [2.0, 0, 5])  # the server's
+    assert vo.ba_applied == [([2], [0])]

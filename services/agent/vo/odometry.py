@@ -538,8 +538,20 @@ class VisualOdometry:
 
     def _apply_ba(self, r: BAResult) -> None:
         """A BA run in the background may come back after trimming or culling removed
-        some of its keyframes and points: those are skipped."""
+        some of its keyframes and points: those are skipped.
+
+        Tracking went on while it ran, against the window as it was. So what came since
+        it was handed the window -- the last tracked pose, keyframes made meanwhile and
+        the points they added -- moves rigidly with the window's newest keyframe
+        (ORB-SLAM's UpdateLastFrame): left where they were, the next frame would be
+        predicted from a pose the moved map no longer agrees with (the difference
+        taken for motion: a velocity spike), and the points of a keyframe made
+        meanwhile would sit apart from the moved ones they are tracked with."""
         moved_kfs = [k for k in r.poses if k in self.kfs]
+        if moved_kfs:
+            newest = max(moved_kfs)
+            delta = r.poses[newest] @ se3_inv(self.kfs[newest].T_w_c)
+            self._move_since(newest, delta, set(r.points))
         for k in moved_kfs:
             self.kfs[k].T_w_c = r.poses[k]
         moved_mps = [i for i in r.points if i in self.mps]
@@ -553,6 +565,23 @@ class VisualOdometry:
                 if kf is not None and kf.mp[j] == i:
                     kf.mp[j] = -1
         self.ba_applied.append((moved_kfs, moved_mps))
+
+    def _move_since(self, newest: int, delta: np.ndarray, in_ba: set[int]) -> None:
+        """Apply ``delta`` (world -> world) to the last tracked pose and to keyframes
+        newer than ``newest`` with the points they added (not the ones BA placed). Moved
+        rigidly with ``newest``, they keep their poses relative to it, so the agent's
+        update of the window (``ba_applied``) tells the server all there is."""
+        if self.T_last is not None:
+            self.T_last = delta @ self.T_last
+        later = [k for k in self.kfs if k > newest]
+        for k in later:
+            self.kfs[k].T_w_c = delta @ self.kfs[k].T_w_c
+        if not later:
+            return
+        R, t = delta[:3, :3], delta[:3, 3]
+        for i, mp in self.mps.items():
+            if mp.first_kf > newest and i not in in_ba and i not in self.foreign:
+                mp.pos = R @ mp.pos + t
 
 
 def _damp(T: np.ndarray, a: float) -> np.ndarray:
