@@ -102,6 +102,10 @@ def run(seq: str, frames: str) -> dict:
         "track_ms_median": 1e3 * st["track_s_median"], "track_ms_p95": 1e3 * st["track_s_p95"],
         "map_ms_per_kf": 1e3 * st["map_s_median"], "keyframes": st["keyframes"],
         "bytes_per_s": st["bytes"] / flight_s,
+        # All the agent sends: keyframe batches (with resends) and its live poses.
+        "pose_bytes_per_s": st.get("pose_bytes", 0) / flight_s,
+        "total_bytes_per_s": (st["bytes"] + st.get("pose_bytes", 0)) / flight_s,
+        "kf_resent": st.get("kf_resent"), "mp_updates": st.get("mp_updates"),
         "ack_latency_median_ms": 1e3 * st["ack_latency_median_s"],
         "ack_latency_p95_ms": 1e3 * st["ack_latency_p95_s"],
         "mapper_latency_mean_ms": mapper_latency_mean_ms(metrics, agent, missing=None),
@@ -115,12 +119,15 @@ def main() -> int:
     ap.add_argument("--seqs", default="MH01,MH02,MH03")
     ap.add_argument("--frames", default="")
     ap.add_argument("--no-server", action="store_true", help="the agent alone (issue item 1-2)")
+    ap.add_argument("--name", default="", help="results name (default: vo[_alone][_partial])")
     args = ap.parse_args()
     rows = []
     for seq in track(args.seqs.split(","), "sequences"):
         rows.append((run_alone if args.no_server else run)(seq, args.frames))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    name = "vo" + ("_alone" if args.no_server else "") + ("_partial" if args.frames else "")
+    name = args.name or (
+        "vo" + ("_alone" if args.no_server else "") + ("_partial" if args.frames else "")
+    )
     path = write_report(name, {"rows": rows})
     if args.no_server:
         print(table(rows, ["seq", "frames", "path_m", "ate_online_m", "ate_online_pct",
@@ -130,7 +137,8 @@ def main() -> int:
         return 0
     print(table(rows, ["seq", "frames", "path_m", "ate_online_m", "ate_online_pct",
                        "ate_online_evo_m", "ate_vo_m", "longest_lost_s", "track_ms_median",
-                       "track_ms_p95", "map_ms_per_kf", "bytes_per_s"]))  # fmt: skip
+                       "track_ms_p95", "map_ms_per_kf", "bytes_per_s",
+                       "total_bytes_per_s"]))  # fmt: skip
     print(table(rows, ["seq", "keyframes", "server_kfs", "ack_latency_median_ms",
                        "ack_latency_p95_ms", "mapper_latency_mean_ms", "ate_agent_kf_m",
                        "ate_server_kf_m"]))  # fmt: skip

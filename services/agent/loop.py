@@ -128,7 +128,8 @@ class AgentStats:
     server_maps: list[str] = field(default_factory=list)  # the server maps it was in
     acked_keyframes: int = 0
     messages: int = 0
-    bytes: int = 0
+    bytes: int = 0  # keyframe batches (resends included)
+    pose_bytes: int = 0  # live pose messages (``comm.pose_rate_hz``)
     kf_resent: int = 0
     resent: dict = field(default_factory=dict)
     duration_s: float = 0.0
@@ -423,6 +424,7 @@ class AgentLoop:
         s, c = self.stats, self.comm
         s.duration_s = time.monotonic() - t_start
         s.messages, s.bytes = c.stats.messages, c.stats.bytes
+        s.pose_bytes = self.health.pose_bytes
         s.kf_resent = c.stats.kf_resent
         s.kf_lost_unacked = c.stats.kf_dropped_unacked
         s.resent = dict(c.resent_reasons)
