@@ -120,6 +120,9 @@ class VOSettings(BaseModel):
     nominal_dt_s: float = Field(0.05, gt=0)  # the frame interval the frame counts are for
     dt_ratio_min: float = Field(0.5, gt=0)  # frame interval / nominal, clipped to this range
     dt_ratio_max: float = Field(6.0, gt=0)
+    # Frame intervals within this factor of each other count as the same rate (jitter);
+    # beyond it (a dropped frame: 2x) the motion model scales its step to the interval.
+    dt_jitter_max_ratio: float = Field(1.4, gt=1)
     # A pose the motion model cannot explain is not taken from a weakly supported PnP:
     # how far from the prediction it may be (share of the scene depth, plus this many
     # times the frame's own predicted motion), growing with every frame lost.

@@ -80,6 +80,11 @@ class VisualOdometry:
         self.init_age = 0
         self.T_last: np.ndarray | None = None
         self.velocity = np.eye(4)
+        # The interval ``velocity`` was measured over, and this frame's (seconds): a live
+        # camera drops frames, so the next frame may come one or more periods later
+        # than the one the motion was measured on (or sooner, after such a gap).
+        self.vel_dt_s: float | None = None
+        self.dt_s: float | None = None
         self.last_stamp: int | None = None
         self.dt_ratio = 1.0  # this frame's interval / the nominal one
         self.depth = 1.0  # median depth of the points tracked last (VO units)
@@ -102,8 +107,9 @@ class VisualOdometry:
         """Track one image, or its ``features`` when they were extracted already (the
         live agent extracts on its camera thread, while the previous frame is tracked)."""
         t0 = time.perf_counter()
+        self.dt_s = None
         if self.last_stamp is not None and stamp_ns > self.last_stamp:
-            dt = (stamp_ns - self.last_stamp) * 1e-9
+            dt = self.dt_s = (stamp_ns - self.last_stamp) * 1e-9
             self.dt_ratio = float(np.clip(dt / self.p.nominal_dt_s, self.p.dt_ratio_min,
                                           self.p.dt_ratio_max))  # fmt: skip
         self.last_stamp = stamp_ns
@@ -237,6 +243,20 @@ class VisualOdometry:
                 return r, pi, kp
         return None, None, None
 
+    def _motion(self) -> np.ndarray:
+        """The constant-velocity step to this frame: the last measured motion, scaled to
+        this frame's interval when that differs from the one it was measured over by
+        a frame or more (a frame the camera dropped; a regular rate's jitter is left
+        alone, so a camera that drops nothing predicts exactly as before). Unscaled, the
+        frame after a dropped one was predicted a whole period of motion off, and the
+        frame after that a period short."""
+        if self.vel_dt_s is None or self.dt_s is None:
+            return self.velocity
+        a = self.dt_s / self.vel_dt_s
+        if self.p.dt_jitter_max_ratio**-1 < a < self.p.dt_jitter_max_ratio:
+            return self.velocity
+        return _damp(self.velocity, a)
+
     def _plausible(self, r, T_pred: np.ndarray) -> bool:
         """Could the camera be there? A drone does not teleport: the pose must lie near
         the motion model's prediction, the more loosely the longer tracking was lost,
@@ -263,7 +283,7 @@ class VisualOdometry:
         # drift of the reported pose (S_g_l in the runner).
         pids = self._local_points()
         P, D = self._points(pids)
-        T_pred = self.T_last @ self.velocity
+        T_pred = self.T_last @ self._motion()
         res, pi, kp = self._predict(f, T_pred, P, D)
         weak = res is None or res.inliers.sum() < self._strong
         if weak and self.foreign:
@@ -307,6 +327,7 @@ class VisualOdometry:
         T = res.T_w_c
         # After a loss the last pose is a prediction: no velocity from it.
         self.velocity = np.eye(4) if was_lost else se3_inv(self.T_last) @ T
+        self.vel_dt_s = None if was_lost else self.dt_s
         self.lost_frames = 0
         self.T_last = T
         self.frames_since_kf += 1
@@ -585,7 +606,8 @@ class VisualOdometry:
 
 
 def _damp(T: np.ndarray, a: float) -> np.ndarray:
-    """The motion ``T`` scaled down to the share ``a`` (rotation angle and translation)."""
+    """The motion ``T`` scaled by ``a`` (rotation angle and translation): a share of it
+    (damping), or a longer step (``a`` > 1)."""
     out = np.eye(4)
     out[:3, :3] = exp_so3(a * log_so3(T[:3, :3]))
     out[:3, 3] = a * T[:3, 3]
