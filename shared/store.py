@@ -406,10 +406,17 @@ class Store:
         pipe.delete(_k("map", source, "kfs"), _k("map", source, "loops"))
 
     def put_pose(self, pose: LivePose) -> None:
-        data = pose.encode()
+        self.put_poses([pose])
+
+    def put_poses(self, poses: list[LivePose]) -> None:
+        """Agents' newest live poses, all in one round trip."""
+        if not poses:
+            return
         p = self.r.pipeline(transaction=False)
-        p.set(_k("agent", pose.agent, "pose"), data)
-        p.publish(POSE_CHANNEL, data)
+        for pose in poses:
+            data = pose.encode()
+            p.set(_k("agent", pose.agent, "pose"), data)
+            p.publish(POSE_CHANNEL, data)
         p.execute()
 
     # --- reads (mapper restart) ------------------------------------------------------

@@ -112,9 +112,11 @@ def map_to_agent_ref(
         S_l_m = fit_sim3_poses(T_m, np.stack([k.T_l_kf for k in kfs]))
         c_m = T_m[:, :3, 3]
         d_m = np.linalg.norm(c_m - c_m.mean(0), axis=1).sum()
-        obs = ref.mp[ref.mp >= 0][:200].tolist()
-        depth = np.median([np.linalg.norm(smap.mps[g].pos - ref.T_m_kf[:3, 3])
-                           for g in obs if g in smap.mps] or [np.inf])  # fmt: skip
+        obs = [smap.mps.get(g) for g in ref.mp[ref.mp >= 0][:200].tolist()]
+        pos = [p.pos for p in obs if p is not None]
+        depth = (float(np.median(np.linalg.norm(np.concatenate(pos).reshape(-1, 3)
+                                                - ref.T_m_kf[:3, 3], axis=1)))
+                 if pos else np.inf)  # fmt: skip
         # Enough baseline (mean spread >= MIN_SPREAD of the scene depth), and no more than
         # 20 % from the handler's scale (anything further is a broken fit, not drift).
         if (
@@ -219,10 +221,11 @@ def build_chunk(
     # (its own, or another agent's it associated): a second copy at the server's slightly
     # different position would compete with the first for the same keypoints. The rest
     # (other agents' points, places it saw long ago) is what the agent lacks.
+    uniq, first = np.unique(allmp, return_index=True)
     mine = [smap.kfs[g].mp for g in range(lo, hi + 1) if g in smap.kfs]
     if mine:
-        allmp = allmp[~np.isin(allmp, np.concatenate(mine))]
-    uniq, first = np.unique(allmp, return_index=True)
+        keep = ~np.isin(uniq, np.concatenate(mine))
+        uniq, first = uniq[keep], first[keep]
     order = np.argsort(first, kind="stable")
     mp_gids = uniq[order]
     rank = np.empty(len(uniq), np.int64)

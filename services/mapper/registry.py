@@ -22,8 +22,8 @@ and a batch for a map held elsewhere would be forwarded instead of queued.
 from __future__ import annotations
 
 import contextlib
+import queue
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
@@ -37,9 +37,53 @@ if TYPE_CHECKING:
     from .service import MapActor
 
 
+class Backlog:
+    """Keyframe batches queued on all map actors together: a count kept by the actors'
+    queues (:class:`BatchQueue`), and a condition to sleep on until it is zero. Asked
+    for between every step of background work; polling every actor's queue size every
+    2 ms instead took a tenth of the mapper's samples at 16 agents."""
+
+    def __init__(self) -> None:
+        self._n = 0
+        self._cv = threading.Condition(threading.Lock())
+
+    def add(self, d: int) -> None:
+        with self._cv:
+            self._n += d
+            if self._n <= 0:
+                self._n = 0
+                self._cv.notify_all()
+
+    def __bool__(self) -> bool:
+        return self._n > 0
+
+    def wait_clear(self, timeout: float) -> bool:
+        """Sleeps until no batch is queued, at most ``timeout`` seconds; True if none is."""
+        with self._cv:
+            return self._cv.wait_for(lambda: self._n <= 0, timeout)
+
+
+class BatchQueue(queue.Queue):
+    """A map actor's queue of keyframe batches, counted in the registry's backlog."""
+
+    def __init__(self, backlog: Backlog) -> None:
+        super().__init__()
+        self._backlog = backlog
+
+    def _put(self, item) -> None:  # under the queue's mutex, as queue.Queue calls it
+        super()._put(item)
+        self._backlog.add(1)
+
+    def _get(self):
+        item = super()._get()
+        self._backlog.add(-1)
+        return item
+
+
 class MapRegistry:
     def __init__(self, make_actor: Callable[[ServerMap], MapActor]) -> None:
         self._make_actor = make_actor
+        self.backlog = Backlog()
         self.maps: dict[str, ServerMap] = {}
         self._handlers: dict[str, AgentHandler] = {}
         self._by_map: dict[str, set[str]] = {}  # map id -> agents registering into it
@@ -128,7 +172,11 @@ class MapRegistry:
 
     def batches_waiting(self) -> bool:
         """Whether any map actor has a keyframe batch queued."""
-        return any(a.q.qsize() for a in list(self.actors.values()))
+        return bool(self.backlog)
+
+    def new_queue(self) -> BatchQueue:
+        """A queue for a new map actor, counted in :attr:`backlog`."""
+        return BatchQueue(self.backlog)
 
     def wait_for_batches(self, max_s: float = 1.0) -> None:
         """Background work (map copies, corrections, loop fusion) calls this between
@@ -137,9 +185,7 @@ class MapRegistry:
         map's lock and takes it again at once usually wins over the actor it woke, and a
         CPU-bound thread off the lock still takes half the GIL. ``max_s`` bounds the
         wait, so background work still progresses under sustained load."""
-        end = time.monotonic() + max_s
-        while self.batches_waiting() and time.monotonic() < end:
-            time.sleep(0.002)
+        self.backlog.wait_clear(max_s)
 
     def drop(self, map_id: str) -> list[AgentHandler]:
         """Forget ``map_id`` and its agents: another mapper owns it now (its lease was
@@ -152,6 +198,9 @@ class MapRegistry:
             a = self.actors.pop(map_id, None)
         if a is not None:
             a.dropped = True
+            with contextlib.suppress(queue.Empty):
+                while True:  # never applied (see above); and no longer in the backlog
+                    a.q.get_nowait()
         return dropped
 
     # --- merges ------------------------------------------------------------------------

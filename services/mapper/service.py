@@ -95,6 +95,14 @@ EVENTS_PER_BATCH = 4
 EVENT_MAX_DEFER_S = 30.0
 POSE_INTERVAL_SHED_S = 1.0  # an agent's live pose stored at most this often when shedding
 LOAD_WINDOW_S = 2.0  # an actor's load is its busy share over about this long
+# Feedback (map chunks to agents) is spare-capacity work, but each chunk of a big merged
+# map costs milliseconds, and an actor serves every agent of its map: at 32 agents x
+# 2 Hz it took 46 % of the mapper's busy time (py-spy, bench_ramp.py --profile). An
+# actor spends at most this share of its time on feedback; within that, the agents
+# longest without a chunk go first, so each agent's rate falls evenly as agents are
+# added.
+FEEDBACK_SHARE = 0.15
+FEEDBACK_SLICE_S = 0.02  # one feedback round stops after this long (batches come first)
 
 
 def initial_map_id(agent: str) -> str:
@@ -110,12 +118,13 @@ class MapActor:
         self.reg = svc.registry
         self.stop = stop
         self.smap = smap
-        self.q: queue.Queue = queue.Queue()
+        self.q: queue.Queue = svc.registry.new_queue()
         self.lock = MapLock(smap.map_id)
         self.rng = random.Random(smap.map_id)
         self._cull_version = -1
         self._batches = 0
         self._busy, self._busy_t = 0.0, time.monotonic()
+        self._fb_busy, self._fb_t = 0.0, time.monotonic()
         self.events: list[tuple[str, int]] = []  # (map, keyframe) for place recognition
         self._events_since = 0.0
         self.thread = threading.Thread(target=self._run, name=f"map-{smap.map_id}", daemon=True)
@@ -261,15 +270,27 @@ class MapActor:
     def _feedback(self) -> None:
         # Feedback is spare-capacity work (up to 16 chunks a second for 8 agents, each
         # several ms in a dense merged map): while registration keeps the actor over
-        # half busy, each agent gets it at a quarter of its rate.
+        # half busy, each agent gets it at a quarter of its rate; and it never takes
+        # more than FEEDBACK_SHARE of the actor's time.
+        t0 = time.monotonic()
+        if self._fb_load(t0) > FEEDBACK_SHARE:
+            return
         slow = self.load() > 0.5 or self.svc.level >= FEEDBACK
         if self.svc.level >= FEEDBACK:
             SHED.labels("feedback").inc()
         try:
             self.svc.send_feedback(self.smap, should_yield=self.reg.batches_waiting,
-                                   rate_factor=0.25 if slow else 1.0)  # fmt: skip
+                                   rate_factor=0.25 if slow else 1.0,
+                                   max_s=FEEDBACK_SLICE_S)  # fmt: skip
         except Exception:
             log.exception("feedback failed")
+        t1 = time.monotonic()
+        self._fb_busy = self._fb_load(t1) + (t1 - t0) / LOAD_WINDOW_S
+        self._fb_t = t1
+
+    def _fb_load(self, now: float) -> float:
+        """Share of the last LOAD_WINDOW_S spent on feedback (decayed sum)."""
+        return self._fb_busy * np.exp(-(now - self._fb_t) / LOAD_WINDOW_S)
 
 
 class MapperService:
@@ -486,15 +507,23 @@ class MapperService:
         MAP_SIZE.labels(smap.map_id).set(len(smap.kfs))
         return len(victims)
 
-    def send_feedback(self, smap: ServerMap, should_yield=None, rate_factor: float = 1.0) -> None:
-        """Map chunks to the agents of ``smap`` that are due one; ``should_yield`` is
-        asked between agents (the actor stops when batches are waiting)."""
+    def send_feedback(
+        self, smap: ServerMap, should_yield=None, rate_factor: float = 1.0,
+        max_s: float | None = None,
+    ) -> None:  # fmt: skip
+        """Map chunks to the agents of ``smap`` that are due one, longest waiting first;
+        ``should_yield`` is asked between agents (the actor stops when batches are
+        waiting), and the round stops after ``max_s`` seconds."""
         if self.bus is None:
             return
         m = self.settings.mapper
         now = time.monotonic()
-        for h in self.registry.handlers_of(smap.map_id):
+        handlers = sorted(self.registry.handlers_of(smap.map_id),
+                          key=lambda h: self._fb_last.get(h.agent, -1e9))  # fmt: skip
+        for h in handlers:
             if should_yield is not None and should_yield():
+                return
+            if max_s is not None and time.monotonic() - now > max_s:
                 return
             if m.feedback_k <= 0 or now - self._fb_last.get(h.agent, -1e9) < 1.0 / (
                 m.feedback_rate_hz * rate_factor
@@ -530,16 +559,22 @@ class MapperService:
         return p
 
     def store_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
+        pose = self.live_pose(p, recv_ns)
+        if pose is not None:
+            self.store.put_pose(pose)
+        return pose
+
+    def live_pose(self, p: PoseUpdate, recv_ns: int) -> LivePose | None:
+        """``p`` in its agent's map frame; None before the agent's first keyframe (no map
+        frame to place it in) or when its reference keyframe is unknown."""
         agent = self.flights.known(p.agent, p.session)
         h = None if agent is None else self.registry.handler(agent)
         if h is None:
-            return None  # no keyframe yet: no map frame to place it in
+            return None
         T = h.pose_of(p.kf_ref, p.T_ref_c)
         if T is None:
             return None
-        pose = LivePose(h.agent, h.map_id, p.stamp_ns, T, p.kf_ref, p.tracking, p.fps, recv_ns)
-        self.store.put_pose(pose)
-        return pose
+        return LivePose(h.agent, h.map_id, p.stamp_ns, T, p.kf_ref, p.tracking, p.fps, recv_ns)
 
     def state_digest(self) -> dict:
         """Digest of every map and agent handler (answered on ``hivemap/mapper/state``)."""
@@ -818,6 +853,7 @@ class MapperService:
                 if p is not None:
                     newest[(p.agent, p.session)] = (p, item.recv_ns)
             now = time.monotonic()
+            poses = []
             for p, recv_ns in newest.values():
                 if self.level >= POSES:
                     if now - self._pose_last.get(p.agent, -1e18) < POSE_INTERVAL_SHED_S:
@@ -825,9 +861,16 @@ class MapperService:
                         continue
                     self._pose_last[p.agent] = now
                 try:
-                    self.store_pose(p, recv_ns)
+                    pose = self.live_pose(p, recv_ns)
                 except Exception:
                     log.exception("pose failed", extra={"agent": p.agent})
+                    continue
+                if pose is not None:
+                    poses.append(pose)
+            try:
+                self.store.put_poses(poses)  # one round trip for all agents
+            except Exception:
+                log.exception("storing %d poses failed", len(poses))
 
     def stop(self) -> None:
         self._stop.set()

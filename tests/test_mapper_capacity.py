@@ -1,0 +1,66 @@
+"""What keeps the mapper's CPU per keyframe flat as agents are added (issue 18, capacity):
+background work sleeps on one backlog count instead of polling every actor's queue, and
+global optimizations of a big map are spaced by what they cost the optimizer."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from services.mapper.service import MapperService
+from shared.settings import Settings
+
+
+def test_background_work_sleeps_until_every_actor_queue_is_empty(redis_url):
+    svc = MapperService(Settings(redis_url=redis_url))  # no session: actors not started
+    reg = svc.registry
+    a, b = (reg.actor(reg.ensure_map(m).map_id) for m in ("map-a", "map-b"))
+    assert not reg.batches_waiting()
+    a.q.put("batch 1")
+    b.q.put("batch 2")
+    b.q.put("batch 3")
+    assert reg.batches_waiting()
+    woke: list[float] = []
+    waiter = threading.Thread(target=lambda: (reg.wait_for_batches(max_s=10.0),
+                                              woke.append(time.monotonic())))  # fmt: skip
+    waiter.start()
+    time.sleep(0.1)
+    assert not woke  # still queued: it sleeps
+    a.q.get_nowait()
+    b.q.get_nowait()
+    time.sleep(0.1)
+    assert not woke and reg.batches_waiting()
+    t_empty = time.monotonic()
+    b.q.get_nowait()
+    waiter.join(5.0)
+    assert woke and woke[0] - t_empty < 1.0  # woken by the last get, not the timeout
+    assert not reg.batches_waiting()
+    # The bound holds under sustained load.
+    a.q.put("batch 4")
+    t0 = time.monotonic()
+    reg.wait_for_batches(max_s=0.2)
+    assert 0.15 < time.monotonic() - t0 < 2.0
+    # A map handed to another mapper takes its unapplied batches out of the count.
+    reg.drop("map-a")
+    assert not reg.batches_waiting()
+
+
+def test_global_optimizations_of_a_map_are_spaced_by_their_run_time(redis_url):
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    svc.registry.ensure_map("map-a")
+    now = time.monotonic()
+    c.mark_dirty("map-a", "loop")
+    assert c.due(now) == [("map-a", "loop")]  # never asked before
+    c._last_request["map-a"] = now
+    c.mark_dirty("map-a", "loop")
+    assert c.due(now + c.min_interval + 0.1) == [("map-a", "loop")]  # a cheap map
+    # The optimizer ran the map's last optimization for 8 s: with at most
+    # optimizer_share of a core for it, the next request waits 8 / share.
+    c._run_s["map-a"] = 8.0
+    c._last_request["map-a"] = now
+    c.mark_dirty("map-a", "loop")
+    gap = 8.0 / c.optimizer_share
+    assert c.due(now + c.min_interval + 0.1) == []
+    assert c.due(now + gap - 0.5) == []
+    assert c.due(now + gap + 0.1) == [("map-a", "loop")]
