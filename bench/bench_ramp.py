@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -76,23 +77,33 @@ def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subproce
             for name in SERVER if name in pids]  # fmt: skip
 
 
+# Leaf frames of a thread that waits (py-spy's idle test is unreliable with
+# --nonblocking: these showed up as a third of the mapper's "busy" samples).
+WAITING = ("Condition.wait ", "Event.wait ", "_PollLikeSelector.select ",
+           "SocketBuffer._read_from_socket ", "MapRegistry.wait_for_batches ")  # fmt: skip
+
+
 def top_of(path: Path, n: int = 25) -> str:
     """The ``n`` functions with most samples in a py-spy collapsed-stack file, by own
-    samples and by samples with the function anywhere on the stack."""
+    samples and by samples with the function anywhere on the stack; samples of threads
+    waiting (``WAITING``) are counted apart, and line numbers are dropped."""
     own: dict[str, int] = {}
     incl: dict[str, int] = {}
-    total = 0
+    total = waiting = 0
     for line in path.read_text().splitlines():
         stack, _, cnt = line.rpartition(" ")
         if not stack:
             continue
         c = int(cnt)
+        frames = [re.sub(r":\d+\)$", ")", f) for f in stack.split(";")]
+        if frames[-1].startswith(WAITING):
+            waiting += c
+            continue
         total += c
-        frames = stack.split(";")
         own[frames[-1]] = own.get(frames[-1], 0) + c
         for f in set(frames):
             incl[f] = incl.get(f, 0) + c
-    lines = [f"{path.stem}: {total} samples"]
+    lines = [f"{path.stem}: {total} samples busy, {waiting} waiting"]
     for title, d in (("own", own), ("inclusive", incl)):
         lines.append(f"  by {title}:")
         for f, c in sorted(d.items(), key=lambda kv: -kv[1])[:n]:
