@@ -27,7 +27,7 @@ from services.agent.sim_agent import DriftModel, LandmarkWorld, SimAgent
 from services.mapper.registration import AgentHandler, MapperParams
 from services.mapper.server_map import ServerMap
 from shared.geometry import se3_inv
-from shared.messages import Ack, KeyframeBatch, KeyframeUpdate
+from shared.messages import Ack, KeyframeBatch, KeyframeUpdate, MapPoints
 from shared.trajectory import Trajectory, load_euroc_gt
 
 W = 7  # keyframes in the modelled local BA window
@@ -135,3 +135,20 @@ def test_lost_and_overtaken_batches_end_in_the_in_order_map(keyframes, link):
 def test_in_order_reference(keyframes):
     h, est, _ = _fly(keyframes)
     assert max(np.abs(h.kf_pose(i) - T).max() for i, T in est.items()) < 1e-9
+
+
+def test_the_first_keyframe_is_placed_though_its_parent_comes_later(keyframes):
+    """An agent's first keyframe has no predecessor, and its covisibility parent is a
+    later keyframe. Registration placed it only once that parent was in the map, which
+    the parent itself waited for: each agent's first batch sat out the orphan rule's
+    5 s unacknowledged (the first ~9 keyframes of every team3 agent, ack p95 ~3 s)."""
+    k0, k1 = keyframes[0], keyframes[1]
+    first = replace(
+        k0.kf, pred_id=-1, parent_id=k1.kf.id, T_par_kf=se3_inv(k1.kf.T_l_kf) @ k0.kf.T_l_kf
+    )
+    h = AgentHandler("A", 0, ServerMap("m"), params=MapperParams(refine_poses=False))
+    res = h.ingest(
+        KeyframeBatch("A", 0, 0, 0, [first, k1.kf], [], k0.new_mps, MapPoints.empty()), now=0.0
+    )
+    assert sorted(res.ack_kf_ids) == [k0.kf.id, k1.kf.id] and not h.pending_kfs
+    assert res.orphans_anchored == 0

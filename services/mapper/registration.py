@@ -308,7 +308,11 @@ class AgentHandler:
             progress = False
             for kid in sorted(self.pending_kfs):
                 kf = self.pending_kfs[kid]
-                first = kf.pred_id < 0 and kf.parent_id < 0 and not self.local_poses
+                # The agent's first keyframe: no predecessor. Its parent (the keyframe
+                # sharing most of its points) is a later one then, which cannot place it:
+                # waiting for it held every agent's first ~9 keyframes for the orphan
+                # rule's 5 s (an ack p95 of 3 s on a loss-free link).
+                first = kf.pred_id < 0 and not self.local_poses
                 if first:
                     T = self.S_m_l.transform_pose(kf.T_l_kf)
                 else:
