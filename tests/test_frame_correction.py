@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.mapper.feedback import anchor_count, fit_settled, frame_correction
+from services.mapper.feedback import anchor_count, fit_frame, fit_settled, frame_correction
 from services.mapper.registration import AgentHandler
 from services.mapper.server_map import ServerKeyframe, ServerMap
 from shared.geometry import Sim3, exp_so3, fit_sim3_poses, umeyama
@@ -83,10 +83,11 @@ def test_correction_takes_the_drift_out_of_the_reported_poses():
     e_vo = ate(Trajectory(stamps[20:], np.stack(vo)), gt).rmse
     e_corr = ate(Trajectory(stamps[20:], np.stack(corrected)), gt).rmse
     assert e_vo > 0.02
-    # g is anchored on the first keyframes and stays put, and the local fit is short:
-    # 0.016 of the VO's error is left. With g fitted on the whole drifted flight so far
-    # (g moved as the flight grew) and a 60-keyframe local fit, 0.41 was.
-    assert e_corr < 0.1 * e_vo, (e_vo, e_corr)
+    # 0.44 of the VO's error is left: g is where the settled map puts the flight so far
+    # (fit_frame), and with a drift this steady and a map this exact it follows the
+    # drift as the flight grows. Anchored on the first keyframes 0.016 was left, but on
+    # recorded runs that anchor turned with every optimization (fit_frame's doc).
+    assert e_corr < 0.5 * e_vo, (e_vo, e_corr)
 
 
 def test_no_correction_where_map_and_vo_agree():
@@ -101,10 +102,9 @@ def test_no_correction_where_map_and_vo_agree():
     assert frame_correction(_handler(T_l[:3], T_l[:3])) is None
 
 
-def A_vo(T_l: np.ndarray, T_m: np.ndarray) -> Sim3:
-    """The anchor: the agent's first keyframes, VO onto the map."""
-    k = anchor_count(T_l[:, :3, 3])
-    return fit_sim3_poses(T_l[:k], T_m[:k])
+def A_vo(T_l: np.ndarray, T_m: np.ndarray, settled: int) -> Sim3:
+    """Frame g: the agent's settled keyframes, VO onto the map."""
+    return fit_frame(T_l, T_m, np.arange(len(T_l)) < settled)
 
 
 def test_an_unsettled_frontier_that_contradicts_the_vo_is_not_applied():
@@ -120,21 +120,21 @@ def test_an_unsettled_frontier_that_contradicts_the_vo_is_not_applied():
     c0 = T_m[-40, :3, 3].copy()
     T_m[-40:, :3, 3] = c0 + 0.94 * (T_m[-40:, :3, 3] - c0) + M.s * np.array([0.0, 0.04, 0.0])
 
-    def error(h: AgentHandler) -> float:
+    def error(h: AgentHandler, settled: int) -> float:
         """How far the correction puts the newest keyframe from the truth, in frame g
-        (back into the map's frame through the anchor, as the map holds it)."""
+        (back into the map's frame through frame g's fit, as the map holds it)."""
         S = frame_correction(h)
-        p = A_vo(T_l, T_m).apply(S.transform_pose(T_l[-1])[None, :3, 3])[0]
+        p = A_vo(T_l, T_m, settled).apply(S.transform_pose(T_l[-1])[None, :3, 3])[0]
         return float(np.linalg.norm(M.inverse().apply(p[None])[0] - T_true[-1, :3, 3]))
 
     # The VO carried on from the last settled keyframe: what it drifts over 40 keyframes
-    # (18 mm) is left, of the 15 cm it drifted over the whole flight.
+    # (18 mm) is left, of the VO's 35 mm there (in frame g).
     e_vo = float(np.linalg.norm(M.inverse().apply(
-        A_vo(T_l, T_m).apply(T_l[-1:, :3, 3]))[0] - T_true[-1, :3, 3]))  # fmt: skip
-    e_settled = error(_handler(T_l, T_m, len(T_l) - 40))
-    assert e_settled < 0.025 < 0.1 < e_vo, (e_settled, e_vo)
-    # Had the frontier counted (as if settled), the correction would follow it (44 mm).
-    e_frontier = error(_handler(T_l, T_m))
+        A_vo(T_l, T_m, len(T_l) - 40).apply(T_l[-1:, :3, 3]))[0] - T_true[-1, :3, 3]))  # fmt: skip
+    e_settled = error(_handler(T_l, T_m, len(T_l) - 40), len(T_l) - 40)
+    assert e_settled < 0.025 < e_vo, (e_settled, e_vo)
+    # Had the frontier counted (as if settled), the correction would follow it.
+    e_frontier = error(_handler(T_l, T_m), len(T_l))
     assert e_frontier > 2 * e_settled, (e_settled, e_frontier)
     # Nothing settled yet (no loop closed, no merge): no correction, the VO stands.
     assert frame_correction(_handler(T_l, T_m, 0)) is None

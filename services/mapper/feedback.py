@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from shared import feedback_dump
-from shared.geometry import Sim3, fit_sim3_poses, se3_inv
+from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
 from shared.ids import agent_index_of, local_id_of
 from shared.messages import MapChunk
 
@@ -40,6 +40,7 @@ ANCHOR_KFS = 20
 ANCHOR_SPREAD = 0.4
 MIN_FIT_KFS = 8
 SETTLED_SPREAD = 0.05  # the local fit's spread (units as ANCHOR_SPREAD)
+LINE_RATIO = 0.03  # centres this much narrower across than along lie on a line
 
 
 def anchor_count(
@@ -90,6 +91,35 @@ def fit_settled(
     if m is None:
         return None
     return fit_sim3_poses(T_l[idx[-m:]], T_m[idx[-m:]])
+
+
+def fit_frame(T_l: np.ndarray, T_m: np.ndarray, settled: np.ndarray) -> Sim3 | None:
+    """A_m_l: the agent's VO frame onto the map, fitted on the centres of all its
+    settled keyframes (least squares, :func:`~shared.geometry.umeyama`); frame g, in
+    which the agent reports, is the map seen through it. None with fewer than
+    MIN_FIT_KFS settled keyframes.
+
+    It changes only when an optimization lands, like the local fit. Anchored on the
+    agent's first keyframes instead (d0cbe27), g turned whenever an optimization moved
+    those against the rest, and with 10 settled keyframes in the local fit each
+    correction then moved the pose by 4-15 mm more or less than the one before.
+    Replayed (bench/replay_feedback.py), first keyframes vs this fit: team5 13.9 / 8.2 /
+    13.8 / 22.9 / 19.8 vs 12.6 / 8.5 / 14.4 / 22.1 / 18.6 mm (VO 13.7 / 18.8 / 17.3 /
+    44.1 / 37.2); the two-agent seed-1 run 14.6 / 12.9 vs 8.3 / 13.3 (VO 7.5 / 15.2).
+    On a synthetic flight with steady drift and an exact map it is the worse choice
+    (tests/test_frame_correction.py: 0.44 vs 0.02 of the VO's error left), there g
+    follows the drift as the flight grows. Centres on a line leave the roll about it
+    open: then the orientations fix the rotation (:func:`~shared.geometry.fit_sim3_poses`)."""
+    idx = np.nonzero(np.asarray(settled, bool))[0]
+    if len(idx) < MIN_FIT_KFS:
+        return None
+    c = T_l[idx, :3, 3]
+    sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
+    if sv[0] <= 1e-12:
+        return None
+    if sv[1] < LINE_RATIO * sv[0]:
+        return fit_sim3_poses(T_l[idx], T_m[idx])
+    return umeyama(c, T_m[idx, :3, 3], with_scale=True)
 
 
 def map_to_agent_ref(
@@ -156,20 +186,14 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
         return None
     T_l = np.stack([k.T_l_kf for k in kfs])
     T_m = np.stack([k.T_m_kf for k in kfs])
-    # The anchor is the same keyframes all flight long. Fitted on the whole flight so
-    # far (as it was), g itself moved as the drifted VO trajectory grew: the reported
-    # poses of early and late in the flight sat in different frames, and the one
-    # alignment of an evaluation (or a drone's map) could not fit both -- the reported
-    # pose came out worse than the raw VO for some agents. The first keyframes have
-    # drifted least, and a merge or loop closure moves them with the rest of the map,
-    # so g stays the agent's own starting frame.
-    # Its rotation comes from the keyframes' orientations (fit_sim3_poses), which a short
-    # or straight baseline does not weaken; the scale from their centres' spread.
-    k = anchor_count(T_l[:, :3, 3])
-    if k is None:
+    # Frame g waits for the agent's first keyframes to spread (anchor_count): before,
+    # any fit is a lever. Then it is where the settled map puts the agent's flight so
+    # far, as a whole (fit_frame).
+    if anchor_count(T_l[:, :3, 3]) is None:
         return None
-    A_m_l = fit_sim3_poses(T_l[:k], T_m[:k])
-    S_m_l = fit_settled(T_l, T_m, np.array([kf.optimized for kf in kfs], bool), n_local)
+    settled = np.array([kf.optimized for kf in kfs], bool)
+    A_m_l = fit_frame(T_l, T_m, settled)
+    S_m_l = fit_settled(T_l, T_m, settled, n_local)
     if A_m_l is None or S_m_l is None:
         return None
     S_g_l = A_m_l.inverse() @ S_m_l
