@@ -856,9 +856,10 @@ def _session(d: dict) -> int | None:
     v = d.get("session")
     if v is None:
         return None
-    if _int(v, "session") < 0:
+    s = _int(v, "session")
+    if s < 0:
         raise DecodeError("session: negative")
-    return v
+    return s
 
 
 def peek_session(data: bytes) -> int | None:

@@ -27,9 +27,9 @@ MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 # than the raw VO for two of three agents (4.53 / 5.73 / 12.14 mm vs 4.54 / 3.72 /
 # 13.51), through a 10-keyframe fit better for all three (4.00 / 3.62 / 8.64 mm).
 LOCAL_FIT_KFS = 10
-# The agent's first keyframes fix its frame g for the whole flight: at least ANCHOR_KFS,
-# and as many more as it takes for their centres to spread ANCHOR_SPREAD (RMS distance
-# from their mean, in the VO's units: the initial median scene depth). A fit on a short
+# No correction until the agent's keyframes reach a spread (anchor_count): at least
+# ANCHOR_KFS, and as many more as it takes for their centres to spread ANCHOR_SPREAD
+# (RMS distance from their mean, in the VO's units: the initial median scene depth). A fit on a short
 # baseline is a lever: its rotation is off by about (how far the map moves those
 # keyframes) / (their spread), and that swings the reported pose by the same angle
 # times its distance from them. The first 20 keyframes of a team3 agent span 2 cm of
@@ -169,8 +169,8 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     and in the map after registration, loop closures, merges and global optimization
     (``T_m_kf``). Two similarities relate them: ``S_m_l`` fitted on the newest
     ``n_local`` keyframes that went through a global optimization (:func:`fit_settled`)
-    and ``A_m_l`` fitted on its first keyframes (the anchor, :func:`anchor_count`: how
-    the agent's frame sits on the map). ``S_g_l = A_m_l^-1 S_m_l`` moves a VO pose to
+    and ``A_m_l`` fitted on the centres of all its settled keyframes (:func:`fit_frame`:
+    how the agent's frame sits on the map). ``S_g_l = A_m_l^-1 S_m_l`` moves a VO pose to
     where the map puts it, expressed in frame ``g``: the agent's own frame as the map
     sees it, which stays put while the map's frame changes (a merge moves the whole map
     into another agent's frame; a loop closure re-scales it about the map's first
@@ -178,8 +178,8 @@ def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | No
     relative motion (a similarity keeps it), so S_g_l changes only when an optimization
     lands, and the reported pose never follows the unsettled frontier. None (the agent
     keeps its last correction, at first none: its VO) until a global optimization has
-    settled enough of its keyframes and its first keyframes spread widely enough for
-    the anchor, or when a fit is degenerate."""
+    settled enough of its keyframes and its keyframes spread widely enough
+    (:func:`anchor_count`), or when a fit is degenerate."""
     smap = h.smap
     kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
     if len(kfs) < MIN_FIT_KFS:
