@@ -434,7 +434,9 @@ class CommModule:
                 # server (or goes again with it): no evidence of its own loss.
                 if self._lost_before(s.seq, answered) and not self._waits_for_kf(i):
                     self._requeue_mp(i, "gap")
-            for q in [q for q in self._seq_t if q < answered - 10_000]:
+            # Seqs go out in increasing order, so the dict's oldest entries come first:
+            # prune from the front instead of scanning every entry on each ack.
+            while self._seq_t and (q := next(iter(self._seq_t))) < answered - 10_000:
                 del self._seq_t[q]
         self._on_update_ack(ack.seq)
         self.stats.ack_latencies.extend(lat)
