@@ -13,7 +13,10 @@ ground truth)::
 For each agent: its raw VO ATE, the reported pose as it flew (``recorded``), the same
 corrections replayed through ``ReportedPose`` (must match ``recorded`` exactly: a check
 of the replay), and the corrections ``services.mapper.feedback.frame_correction`` as it
-is now computes from the recorded map states, replayed at the frames they arrived at.
+is now computes from the recorded map states, replayed at the frames they arrived at
+(every state the mapper recorded for the agent feeds its correction history, in order,
+as on the server; agents record every chunk's arrival, with a correction or without,
+in dumps older than the correction history only the chunks that carried one).
 The agent's reported pose does not feed back into the map (it publishes its VO pose),
 so a replay is what a live run with the same map would have reported.
 """
@@ -33,6 +36,7 @@ from bench_flight import flight_metrics  # noqa: E402
 from common import write_report  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
+from services.mapper.correction_history import CorrectionHistory  # noqa: E402
 from services.mapper.feedback import frame_correction  # noqa: E402
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
@@ -56,7 +60,8 @@ def runs(dump: str | Path) -> dict[str, dict]:
             continue
         chunks = [r for r in recs if r["who"] == ag and r["kind"] == "chunk"]
         out[ag] = {"vo": vo[-1], "chunks": chunks,
-                   "fcs": [fcs.get((ag, c["sent_ns"])) for c in chunks]}  # fmt: skip
+                   "fcs": [fcs.get((ag, c["sent_ns"])) for c in chunks],
+                   "all_fcs": [r for r in fcs.values() if r["agent"] == ag]}  # fmt: skip
     return out
 
 
@@ -76,11 +81,20 @@ def handler_of(r: dict) -> AgentHandler:
     return h
 
 
-def current(r: dict) -> Sim3 | None:
-    """The correction today's frame_correction computes from a recorded map state."""
+def current(r: dict, history: CorrectionHistory) -> Sim3 | None:
+    """The correction today's frame_correction computes from a recorded map state;
+    ``history``: the agent's earlier ones, as its handler on the server keeps them."""
     if r["T_l"] is None:
         return None
-    return frame_correction(handler_of(r), Settings().mapper.feedback_correction_kfs)
+    return frame_correction(handler_of(r), Settings().mapper.feedback_correction_kfs, history)
+
+
+def recompute(a: dict) -> dict[int, Sim3 | None]:
+    """Today's correction for each of the agent's recorded map states (by ``sent_ns``),
+    in the order the mapper computed them, every one of them feeding the agent's
+    correction history as on the server (chunks that never reached the agent too)."""
+    history = CorrectionHistory()
+    return {r["sent_ns"]: current(r, history) for r in a["all_fcs"]}
 
 
 def replay(a: dict, fc=None) -> np.ndarray:
@@ -120,7 +134,8 @@ def main() -> int:
 
         rec = a["vo"]["reported"]
         again = replay(a)
-        cur = replay(a, current)
+        now = recompute(a)
+        cur = replay(a, lambda r, now=now: now.get(r["sent_ns"]))
         e = np.array([err(a["vo"]["T"]), err(rec), err(cur)])
         sums += e
         fl = flight_metrics(Trajectory(st, cur), Trajectory(st, a["vo"]["T"]), gt)

@@ -408,6 +408,7 @@ class AgentLoop:
         c = self._decoded(MapChunk, payload, key, "map chunk")
         if c is None:
             return
+        ok = False
         if c.S_g_l is not None:
             S = Sim3.from_matrix(c.S_g_l)
             ok = self.reported.offer(S)
@@ -416,8 +417,10 @@ class AgentLoop:
                 self.stats.corrections += 1
             else:
                 self.stats.corrections_held += 1
-            feedback_dump.record(self.agent, "chunk", frame=len(self.vo_poses), sent_ns=c.sent_ns,
-                                 map_id=c.map_id, S_g_l=c.S_g_l, accepted=ok)  # fmt: skip
+        # Every chunk, with a correction or not: a replay with another correction rule
+        # (bench/replay_feedback.py) needs to know when each arrived.
+        feedback_dump.record(self.agent, "chunk", frame=len(self.vo_poses), sent_ns=c.sent_ns,
+                             map_id=c.map_id, S_g_l=c.S_g_l, accepted=ok)  # fmt: skip
         self.producer.on_chunk(c)
 
     def _finish(self, t_start: float) -> AgentStats:

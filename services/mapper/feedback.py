@@ -14,6 +14,7 @@ from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
 from shared.ids import agent_index_of, local_id_of
 from shared.messages import MapChunk
 
+from .correction_history import CorrectionHistory
 from .registration import AgentHandler
 
 # The agent tracks against the points of its newest 10 keyframes (VOParams.local_kfs);
@@ -29,8 +30,8 @@ MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 LOCAL_FIT_KFS = 10
 # No correction until the agent's keyframes reach a spread (anchor_count): at least
 # ANCHOR_KFS, and as many more as it takes for their centres to spread ANCHOR_SPREAD
-# (RMS distance from their mean, in the VO's units: the initial median scene depth). A fit on a short
-# baseline is a lever: its rotation is off by about (how far the map moves those
+# (RMS distance from their mean, in the VO's units: the initial median scene depth).
+# A fit on a short baseline is a lever: its rotation is off by about (how far the map moves those
 # keyframes) / (their spread), and that swings the reported pose by the same angle
 # times its distance from them. The first 20 keyframes of a team3 agent span 2 cm of
 # those units (they take off slowly): every global BA that moved them by a millimetre
@@ -162,8 +163,28 @@ def map_to_agent_ref(
     return T_ref_m[:3, :3], T_ref_m[:3, 3] * inv_s, inv_s
 
 
-def frame_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | None:
-    """S_g_l: the agent's VO frame ``l`` onto its server-corrected frame ``g``.
+def frame_correction(
+    h: AgentHandler, n_local: int = LOCAL_FIT_KFS, history: CorrectionHistory | None = None
+) -> Sim3 | None:
+    """The correction sent to ``h``'s agent: of the map's estimate
+    (:func:`estimate_correction`), the part that stands out of the scatter of its
+    successive estimates (``history``, default the handler's; see
+    services/mapper/correction_history.py), taken about the agent's newest keyframe.
+    None while there is no estimate, or too few to judge its scatter by: the agent
+    keeps its last correction, at first none (its VO)."""
+    S_g_l = estimate_correction(h, n_local)
+    if S_g_l is None:
+        return None
+    hist = h.correction_history if history is None else history
+    newest = max(i for i in h.local_poses if h.kf_gid(i) in h.smap.kfs)
+    p = h.smap.kfs[h.kf_gid(newest)].T_l_kf[:3, 3]
+    hist.add(S_g_l, p)
+    return hist.significant(S_g_l, p)
+
+
+def estimate_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 | None:
+    """The map's estimate of S_g_l: the agent's VO frame ``l`` onto its server-corrected
+    frame ``g``.
 
     The server holds each of the agent's keyframes twice: as the VO sent it (``T_l_kf``)
     and in the map after registration, loop closures, merges and global optimization

@@ -36,6 +36,7 @@ from shared.ids import gid, local_id_of
 from shared.messages import KeyframeBatch, KeyframeUpdate, MapPoints, NewKeyframe
 from shared.settings import MapperSettings, default_of
 
+from .correction_history import CorrectionHistory
 from .fusion import fuse_by_projection
 from .pose_refine import refine_pose
 from .server_map import NO_MP, ServerKeyframe, ServerMap, ServerMapPoint
@@ -127,6 +128,8 @@ class AgentHandler:
         self.kf_ref = -1
         self.latest_kf = -1
         self.first_kf = -1
+        # The successive frame corrections sent to the agent (feedback.frame_correction).
+        self.correction_history = CorrectionHistory()
 
     @property
     def map_id(self) -> str:
