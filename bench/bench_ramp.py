@@ -63,6 +63,18 @@ def _pooled_quantile(metrics: dict[str, float], q: float) -> float:
     return hist_quantile(pooled, LAT, 'all="1"', q)
 
 
+def _mean_ms(metrics: dict[str, float], name: str, labels: str) -> float:
+    n = metrics.get(f"{name}_count{{{labels}}}", 0.0)
+    return 1e3 * metrics.get(f"{name}_sum{{{labels}}}", 0.0) / n if n else float("nan")
+
+
+def _holds_over(metrics: dict[str, float], s: float) -> float:
+    """Holds of a map's lock longer than ``s`` (a bucket bound of the histogram)."""
+    name = "hivemap_map_lock_hold_seconds"
+    le = metrics.get(f'{name}_bucket{{le="{s}"}}')
+    return metrics.get(f"{name}_count", 0.0) - le if le is not None else float("nan")
+
+
 def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
     """py-spy samplers on the server's services for ``seconds`` (collapsed stacks, one
     file per service; the rate is low so the sampler's own CPU stays small)."""
@@ -195,6 +207,13 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         "server_cpu_ms_per_kf": ms_per_kf,
         # At these agents' keyframe rate, one core of server CPU serves this many agents.
         "agents_per_core": 1e3 / (ms_per_kf * kf_rate) if kf_rate > 0 else float("nan"),
+        # What a batch cost the map actor (registration and its share of the store), and
+        # how often a map's lock was held longer than 200 ms (merges, corrections): the
+        # rest of the mapper's latency is queueing (behind other batches, background work
+        # and the GIL).
+        "mapper_batch_ms_mean": _mean_ms(metrics, 'hivemap_processing_seconds',
+                                         'kind="kf_batch",service="mapper"'),
+        "lock_holds_over_200ms": _holds_over(metrics, 0.2),
         "shed": {
             k.split('"')[1]: v
             for k, v in metrics.items()

@@ -97,3 +97,24 @@ def test_redundant_keyframes_culled_on_second_lap(world):
     assert removed >= 0.10, removed
     assert abs(after - before) <= 0.10 * before, (before, after)
     assert h.smap.check_invariants() == []
+
+
+def test_redundancy_never_offers_an_agents_newest_keyframes():
+    """Every keyframe here is redundant (all see the same points); the candidates are
+    exactly those that are not among their agent's ``keep_newest`` newest (the newest
+    per agent comes from the gids' agent bits, computed over the whole map)."""
+    import random
+
+    from services.mapper.redundancy import find_redundant
+    from shared.ids import gid
+
+    m = ServerMap("m")
+    for g in range(100, 140):
+        m.add_map_point(_pt(g))
+    gids = [gid(a, i) for a, n in ((1, 15), (2, 12), (3, 4)) for i in range(n)]
+    for g in gids:
+        m.add_keyframe(_kf(g, list(range(100, 140))))
+    for seed in range(5):
+        got = find_redundant(m, random.Random(seed), {gid(1, 0)}, max_checks=100,
+                             keep_newest=10)  # fmt: skip
+        assert sorted(got) == [gid(1, i) for i in range(1, 5)] + [gid(2, i) for i in range(2)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from shared.settings import Settings
 
@@ -10,8 +11,9 @@ from shared.settings import Settings
 def cmd_mapper(args: argparse.Namespace, settings: Settings) -> int:
     from shared.runtime import run_service
 
-    from .service import MapperService
+    from .service import GIL_SWITCH_S, MapperService
 
+    sys.setswitchinterval(GIL_SWITCH_S)
     return run_service(MapperService(settings), settings)
 
 

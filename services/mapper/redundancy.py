@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import random
 
+import numpy as np
+
 from shared.ids import agent_index_of
 
 from .server_map import ServerMap
@@ -54,13 +56,15 @@ def find_redundant(
     ``keep_newest`` newest keyframes of each agent are never candidates."""
     if len(smap.kfs) < 3:
         return []
-    start = rng.choice(list(smap.kfs))
-    # Newest gid per agent (the agent index is the gid's high bits).
-    newest: dict[int, int] = {}
-    for g in smap.kfs:
-        a = agent_index_of(g)
-        if g > newest.get(a, -1):
-            newest[a] = g
+    gids = np.fromiter(smap.kfs, np.int64, len(smap.kfs))
+    start = int(gids[rng.randrange(len(gids))])
+    # Newest gid per agent (the agent index is the gid's high bits), with numpy: a
+    # Python loop over every keyframe of the map ran in each rejection round, and
+    # rounds run between batches of a map several agents share.
+    ai = agent_index_of(gids)
+    order = np.lexsort((gids, ai))
+    last = np.r_[ai[order][1:] != ai[order][:-1], True]
+    newest = dict(zip(ai[order][last].tolist(), gids[order][last].tolist(), strict=True))
     out = []
     for g in [start, *smap.covisible(start)][:max_checks]:
         if g in protected or g in out or g > newest[agent_index_of(g)] - keep_newest:

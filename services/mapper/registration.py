@@ -381,8 +381,7 @@ class AgentHandler:
         own = [i for i, v in self.pending_mps.items() if v[0] == kf.id]
         created = set(self._create_mps(kf.id, own, T, g, res)) if own else set()
         if created:
-            fresh = np.fromiter((m in created for m in mp.tolist()), dtype=bool, count=len(mp))
-            known |= fresh & has
+            known |= np.isin(mp, np.fromiter(created, np.int64, len(created))) & has
         waiting = np.nonzero(has & ~known)[0]
         mp_known = np.where(known, mp, -1)
         skf = ServerKeyframe(

@@ -45,6 +45,7 @@ import random
 import socket
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import redis
@@ -80,7 +81,7 @@ from .metrics import (
 from .overload import BACKGROUND, FEEDBACK, LEVELS, POSES, Overload
 from .ownership import Ownership
 from .redundancy import find_redundant
-from .registration import AgentHandler, MapperParams
+from .registration import AgentHandler, IngestResult, MapperParams
 from .registry import MapRegistry
 from .server_map import ServerMap, digest
 from .sessions import Flights
@@ -107,6 +108,25 @@ LOAD_WINDOW_S = 2.0  # an actor's load is its busy share over about this long
 # added.
 FEEDBACK_SHARE = 0.15
 FEEDBACK_SLICE_S = 0.02  # one feedback round stops after this long (batches come first)
+# A map actor registers the batches queued for its map together, up to this many and
+# while their registration took less than GROUP_BUDGET_S, and stores them in one
+# transaction (see ``MapActor._apply_queued``).
+GROUP_MAX = 8
+# The mapper process's GIL switch interval (CPython's default is 5 ms). Every Redis round
+# trip and Zenoh put of a map actor gives the GIL away; getting it back from a thread
+# that computes (another map's actor, a merge, a map copy) took up to the interval each
+# time, several times per batch. Set by ``hivemap mapper`` for its process.
+GIL_SWITCH_S = 0.001
+GROUP_BUDGET_S = 0.05
+
+
+@dataclass
+class Ingested:
+    """One batch registered in memory, not stored yet: what changed and its ack."""
+
+    res: IngestResult
+    ack: Ack
+    seconds: float  # registration time
 
 
 def initial_map_id(agent: str) -> str:
@@ -144,36 +164,20 @@ class MapActor:
             if self.dropped:
                 return
             try:
-                h, batch, recv_ns, key = self.q.get(timeout=0.05)
+                item = self.q.get(timeout=0.05)
             except queue.Empty:
                 self._publish_events(force=True)
                 if self.retired_into is not None:
                     return  # merged away and drained
                 self._idle()
                 continue
-            if h.smap is not self.smap:
-                # The agent's map was merged into another after this batch was queued.
-                if self.reg.is_local(h.map_id):
-                    self.reg.actor(h.map_id).q.put((h, batch, recv_ns, key))
-                continue
             t_batch = time.monotonic()
-            if not svc.admit(h.agent, batch, recv_ns, t_batch):
+            n = self._apply_queued(item, t_batch)
+            if not n:
                 continue
-            try:
-                with self.lock:
-                    svc.apply(h, batch, recv_ns)
-            except Fenced as e:
-                log.warning("batch of %s not stored: %s", h.agent, e)
-            except redis.WatchError:
-                log.warning("batch of %s not stored: map %s taken by another mapper",
-                            h.agent, self.smap.map_id)  # fmt: skip
-            except redis.RedisError:
-                log.exception("redis write failed; batch not acknowledged")
-            except Exception:
-                REJECTED.labels(SERVICE, key, "internal").inc()
-                log.exception("keyframe batch failed", extra={"agent": h.agent})
             QUEUE_DEPTH.labels(self.smap.map_id).set(self.q.qsize())
-            self._batches += 1
+            cull_due = self._batches // CULL_EVERY != (self._batches + n) // CULL_EVERY
+            self._batches += n
             self._note_busy(t_batch, time.monotonic())
             # Keyframe events for place recognition wait while batches are queued (a
             # burst's acks go first), but not past EVENT_MAX_DELAY_S.
@@ -183,15 +187,60 @@ class MapActor:
             # well, not only when idle: agents flying the same place keep adding observers
             # to the same points, and every later keyframe, fusion and map copy pays for
             # them. When such a map is busiest (8 agents in one hall) idle time never
-            # comes, and this is what keeps it small: a round after every batch that
-            # empties the queue, and after every CULL_EVERY-th one during a burst. A
-            # one-agent map culls when idle.
-            if self._shared() and (self.q.empty() or self._batches % CULL_EVERY == 0):
+            # comes, and this is what keeps it small: a round after every group of batches
+            # that empties the queue, and after every CULL_EVERY-th batch during a burst.
+            # A one-agent map culls when idle.
+            if self._shared() and (self.q.empty() or cull_due):
                 self._cull_round()
             # Feedback is spare-capacity work: queued batches (other agents of a merged
             # map) are registered first; it runs once the queue is drained.
             if self.q.empty():
                 self._feedback()
+
+    def _apply_queued(self, item, t_batch: float) -> int:
+        """Registers ``item`` and the batches queued behind it (up to GROUP_MAX, while
+        their registration took less than GROUP_BUDGET_S) in one hold of the map's lock,
+        stores them in one transaction and then acknowledges each: under load every
+        batch paid three Redis round trips of its own, and each round trip gave the GIL
+        away to the other map actors' threads and waited to get it back. Returns how
+        many batches were registered."""
+        svc = self.svc
+        group: list[tuple] = []
+        try:
+            with self.lock:
+                while True:
+                    h, batch, recv_ns, key = item
+                    if h.smap is not self.smap:
+                        # The agent's map was merged into another after this batch was
+                        # queued.
+                        if self.reg.is_local(h.map_id):
+                            self.reg.actor(h.map_id).q.put(item)
+                    elif svc.admit(h.agent, batch, recv_ns, t_batch):
+                        try:
+                            group.append((h, batch, recv_ns, svc.ingest(h, batch)))
+                        except Exception:
+                            REJECTED.labels(SERVICE, key, "internal").inc()
+                            log.exception("keyframe batch failed", extra={"agent": h.agent})
+                    if (len(group) >= GROUP_MAX
+                            or time.monotonic() - t_batch > GROUP_BUDGET_S):  # fmt: skip
+                        break
+                    try:
+                        item = self.q.get_nowait()
+                    except queue.Empty:
+                        break
+                if group:
+                    svc.store_and_ack(group)
+        except Fenced as e:
+            log.warning("%d batch(es) of map %s not stored: %s", len(group),
+                        self.smap.map_id, e)  # fmt: skip
+        except redis.WatchError:
+            log.warning("%d batch(es) not stored: map %s taken by another mapper",
+                        len(group), self.smap.map_id)  # fmt: skip
+        except redis.RedisError:
+            log.exception("redis write failed; %d batch(es) not acknowledged", len(group))
+        except Exception:
+            log.exception("storing keyframe batches failed")
+        return len(group)
 
     def queue_events(self, map_id: str, gids: list[int]) -> None:
         """Keyframe events to publish after the batch (see ``_publish_events``)."""
@@ -423,40 +472,62 @@ class MapperService:
             return ack
 
     def apply(self, h: AgentHandler, batch: KeyframeBatch, recv_ns: int) -> Ack:
+        """Registers, stores and acknowledges one batch (the actor does several at once,
+        see ``MapActor._apply_queued``)."""
+        return self.store_and_ack([(h, batch, recv_ns, self.ingest(h, batch))])[0]
+
+    def ingest(self, h: AgentHandler, batch: KeyframeBatch) -> Ingested:
+        """Registration of one batch, in memory (``store_and_ack`` writes it out)."""
         t0 = time.perf_counter()
         res = h.ingest(batch, time.monotonic())
-        if res.changed:
-            pipe = self.own.pipeline(h.map_id)
-            persist.write_result(pipe, h, res, self.names)
-            pipe.execute()
         held, missing = h.blocked()
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
-                  np.array(res.ack_mp_ids, np.int64), h.kf_high, time.time_ns(),
+                  np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
                   np.array(held, np.int64), np.array(missing, np.int64), batch.seq)  # fmt: skip
-        if self.bus is not None:
-            self.bus.put(keys.agent_ack(batch.agent), ack.encode())
-            if res.new_kfs:
-                a = self.registry.actors.get(h.map_id)
-                if a is None or not a.thread.is_alive():
-                    self.collab.publish_events(h.map_id, res.new_kfs)
-                else:
-                    a.queue_events(h.map_id, res.new_kfs)
-        now_ns = time.time_ns()
-        for _ in res.new_kfs:
-            KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
+        return Ingested(res, ack, time.perf_counter() - t0)
 
-        for what, n in (("duplicate", res.duplicates), ("stale", res.stale),
-                        ("early", res.early), ("orphan", res.orphans_anchored),
-                        ("rechained", res.rechained)):  # fmt: skip
-            if n:
-                REGISTRATION.labels(what).inc(n)
-        STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
-        STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
+    def store_and_ack(self, group: list[tuple[AgentHandler, KeyframeBatch, int, Ingested]]
+                      ) -> list[Ack]:  # fmt: skip
+        """Stores what the batches of ``group`` (all of one map) changed in one
+        transaction, then acknowledges each: an ack always means "stored". Returns the
+        acks in order."""
+        t0 = time.perf_counter()
+        changed = [(h, ing.res) for h, _, _, ing in group if ing.res.changed]
+        if changed:
+            pipe = self.own.pipeline(changed[0][0].map_id)
+            for h, res in changed:
+                persist.write_result(pipe, h, res, self.names)
+            pipe.execute()
+        t_store = (time.perf_counter() - t0) / len(group)
+        acks = []
+        for h, batch, recv_ns, ing in group:
+            res, ack = ing.res, ing.ack
+            ack.sent_ns = time.time_ns()
+            acks.append(ack)
+            if self.bus is not None:
+                self.bus.put(keys.agent_ack(batch.agent), ack.encode())
+                if res.new_kfs:
+                    a = self.registry.actors.get(h.map_id)
+                    if a is None or not a.thread.is_alive():
+                        self.collab.publish_events(h.map_id, res.new_kfs)
+                    else:
+                        a.queue_events(h.map_id, res.new_kfs)
+            now_ns = time.time_ns()
+            for _ in res.new_kfs:
+                KEYFRAME_LATENCY.labels(batch.agent).observe((now_ns - recv_ns) * 1e-9)
+            for what, n in (("duplicate", res.duplicates), ("stale", res.stale),
+                            ("early", res.early), ("orphan", res.orphans_anchored),
+                            ("rechained", res.rechained)):  # fmt: skip
+                if n:
+                    REGISTRATION.labels(what).inc(n)
+            STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
+            STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
+            PROCESSING.labels(SERVICE, "kf_batch").observe(ing.seconds + t_store)
+        h = group[-1][0]
         MAP_SIZE.labels(h.map_id).set(len(h.smap.kfs))
         MAP_POINTS.labels(h.map_id).set(len(h.smap.mps))
         CULLED.labels(h.map_id)  # exists at 0 from the map's first keyframe on
-        PROCESSING.labels(SERVICE, "kf_batch").observe(time.perf_counter() - t0)
-        return ack
+        return acks
 
     def fuse(self, smap: ServerMap, max_kfs: int | None = None) -> int:
         """Point fusion for keyframes registered since the last call (idle work, so it
