@@ -67,10 +67,16 @@ def move_map(target: ServerMap, source: ServerMap, S_t_s: Sim3) -> FusionResult:
         target.kfs[g] = kf
         target.covis[g] = source.covis.get(g, Counter())
         res.moved_kfs.append(g)
-    for g, p in source.mps.items():
-        p.pos = S_t_s.apply(p.pos[None])[0]
-        target.mps[g] = p
-        res.moved_mps.append(g)
+    # Points in one matrix product (this runs under both maps' locks; one Sim(3) per
+    # point cost ~5 us each, a quarter second for a map of 50k points). Rows are views of
+    # one array: positions are replaced, never edited in place.
+    pts = list(source.mps.values())
+    if pts:
+        P = S_t_s.apply(np.concatenate([p.pos for p in pts]).reshape(-1, 3))
+        for p, row in zip(pts, P, strict=True):
+            p.pos = row
+    target.mps.update(source.mps)
+    res.moved_mps.extend(source.mps)
     for g, (anchor, T_a_kf) in source.culled.items():
         T = T_a_kf.copy()
         T[:3, 3] *= S_t_s.s  # relative poses are in map units
