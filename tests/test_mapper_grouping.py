@@ -90,7 +90,9 @@ def test_queued_batches_registered_together_give_the_same_map_store_and_acks(
     actor = svc.actor("map-A")  # not started: no session
     for key, payload in msgs:
         batch = svc.decode_kf(key, payload)
-        actor.q.put((svc.handler(batch.agent), batch, time.time_ns(), key))
+        h = svc.handler(batch.agent)
+        pre = h.undistorted(batch) if len(actor.q.queue) % 2 else None  # either way
+        actor.q.put((h, batch, time.time_ns(), key, pre))
     groups = []
     while not actor.q.empty():
         groups.append(actor._apply_queued(actor.q.get(), time.monotonic()))

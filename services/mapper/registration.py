@@ -125,6 +125,7 @@ class AgentHandler:
         self.pending_mps: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self.waiting_obs: dict[int, list[tuple[int, int]]] = {}  # mp gid -> [(kf gid, kp)]
         self.to_fuse: list[int] = []
+        self._undistorted: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.kf_ref = -1
         self.latest_kf = -1
         self.first_kf = -1
@@ -181,7 +182,31 @@ class AgentHandler:
         return self.latest_kf
 
     # --- ingest ---------------------------------------------------------------------------
-    def ingest(self, batch: KeyframeBatch, now: float = 0.0) -> IngestResult:
+    def undistorted(self, batch: KeyframeBatch) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """The new keyframes' keypoints undistorted ahead of :meth:`ingest`, with the
+        calibration used: keyframe id -> (calib, xy). The mapper's dispatcher computes
+        them off the map actor's thread (OpenCV runs without the GIL meanwhile); ``ingest``
+        takes one only if its calibration is the camera's when the keyframe goes in."""
+        out = {}
+        for kf in batch.new_kfs:
+            cam = self.camera if kf.calib is None else PinholeRadTan.from_array(kf.calib)
+            out[kf.id] = (cam.to_array(), cam.undistort_points(kf.keypoints).astype(np.float64))
+        return out
+
+    def ingest(
+        self,
+        batch: KeyframeBatch,
+        now: float = 0.0,
+        undistorted: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> IngestResult:
+        """Registers ``batch``; ``undistorted``: from :meth:`undistorted`, if computed."""
+        self._undistorted = undistorted or {}
+        try:
+            return self._ingest(batch, now)
+        finally:
+            self._undistorted = {}
+
+    def _ingest(self, batch: KeyframeBatch, now: float) -> IngestResult:
         res = IngestResult()
         v = batch.sent_ns
         for kf in sorted(batch.new_kfs, key=lambda k: k.id):
@@ -344,7 +369,11 @@ class AgentHandler:
             self.camera = PinholeRadTan.from_array(kf.calib)
         cam = self.camera
         g = self.kf_gid(kf.id)
-        xy = cam.undistort_points(kf.keypoints).astype(np.float64)
+        pre = self._undistorted.get(kf.id)
+        if pre is not None and np.array_equal(pre[0], cam.to_array()):
+            xy = pre[1]
+        else:
+            xy = cam.undistort_points(kf.keypoints).astype(np.float64)
         has = kf.mp_ids >= 0
         mp = np.where(has, gid(self.index, kf.mp_ids.astype(np.int64)), NO_MP)
         if self.aliases:

@@ -209,7 +209,7 @@ class MapActor:
         try:
             with self.lock:
                 while True:
-                    h, batch, recv_ns, key = item
+                    h, batch, recv_ns, key, pre = item
                     if h.smap is not self.smap:
                         # The agent's map was merged into another after this batch was
                         # queued.
@@ -217,7 +217,7 @@ class MapActor:
                             self.reg.actor(h.map_id).q.put(item)
                     elif svc.admit(h.agent, batch, recv_ns, t_batch):
                         try:
-                            group.append((h, batch, recv_ns, svc.ingest(h, batch)))
+                            group.append((h, batch, recv_ns, svc.ingest(h, batch, pre)))
                         except Exception:
                             REJECTED.labels(SERVICE, key, "internal").inc()
                             log.exception("keyframe batch failed", extra={"agent": h.agent})
@@ -476,10 +476,11 @@ class MapperService:
         see ``MapActor._apply_queued``)."""
         return self.store_and_ack([(h, batch, recv_ns, self.ingest(h, batch))])[0]
 
-    def ingest(self, h: AgentHandler, batch: KeyframeBatch) -> Ingested:
-        """Registration of one batch, in memory (``store_and_ack`` writes it out)."""
+    def ingest(self, h: AgentHandler, batch: KeyframeBatch, undistorted=None) -> Ingested:
+        """Registration of one batch, in memory (``store_and_ack`` writes it out);
+        ``undistorted``: its keypoints undistorted ahead (``AgentHandler.undistorted``)."""
         t0 = time.perf_counter()
-        res = h.ingest(batch, time.monotonic())
+        res = h.ingest(batch, time.monotonic(), undistorted)
         held, missing = h.blocked()
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
                   np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
@@ -750,7 +751,10 @@ class MapperService:
             log.info("batch of %s left to another mapper: %s", name, e)
             return
         if self.registry.is_local(h.map_id):
-            self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key))
+            # Keypoints undistorted here, not on the map's actor: OpenCV releases the GIL,
+            # so this overlaps with registration instead of adding to it.
+            pre = h.undistorted(batch)
+            self.actor(h.map_id).q.put((h, batch, item.recv_ns, item.key, pre))
 
     # --- ownership (services/mapper/ownership.py) ---------------------------------------
     def serves(self, agent: str) -> bool:
