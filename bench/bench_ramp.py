@@ -211,9 +211,20 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         # how often a map's lock was held longer than 200 ms (merges, corrections): the
         # rest of the mapper's latency is queueing (behind other batches, background work
         # and the GIL).
-        "mapper_batch_ms_mean": _mean_ms(metrics, 'hivemap_processing_seconds',
-                                         'kind="kf_batch",service="mapper"'),
+        "mapper_batch_ms_mean": _mean_ms(
+            metrics, "hivemap_processing_seconds", 'kind="kf_batch",service="mapper"'
+        ),
         "lock_holds_over_200ms": _holds_over(metrics, 0.2),
+        # The maps at the end (merged ones report nothing): how many, and their size.
+        "maps_at_end": sum(
+            1 for k, v in metrics.items() if k.startswith("hivemap_map_keyframes{") and v > 0
+        ),
+        "map_keyframes_at_end": sum(
+            v for k, v in metrics.items() if k.startswith("hivemap_map_keyframes{")
+        ),
+        "map_points_at_end": sum(
+            v for k, v in metrics.items() if k.startswith("hivemap_map_points{")
+        ),
         "shed": {
             k.split('"')[1]: v
             for k, v in metrics.items()
