@@ -118,3 +118,35 @@ def test_redundancy_never_offers_an_agents_newest_keyframes():
         got = find_redundant(m, random.Random(seed), {gid(1, 0)}, max_checks=100,
                              keep_newest=10)  # fmt: skip
         assert sorted(got) == [gid(1, i) for i in range(1, 5)] + [gid(2, i) for i in range(2)]
+
+
+def test_fusing_points_keeps_covisibility_equal_to_a_recount():
+    """Fusion counts only what changes in the covisibility graph (observers of one point
+    but not of the other); a recount from the observations is the reference, over
+    random maps where the two points' observers overlap in every way."""
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        m = ServerMap("m")
+        n_pts, n_kfs = 40, 25
+        for g in range(1000, 1000 + n_pts):
+            m.add_map_point(_pt(g))
+        for k in range(n_kfs):
+            # Each keyframe sees a random subset; some see a point on two keypoints'
+            # worth of ids (duplicates are dropped by add_keyframe).
+            seen = rng.choice(np.arange(1000, 1000 + n_pts), size=rng.integers(5, 30))
+            m.add_keyframe(_kf(k, seen.tolist()))
+        assert m.check_invariants() == []
+        for _ in range(8):
+            alive = sorted(m.mps)
+            keep, drop = (int(x) for x in rng.choice(alive, 2, replace=False))
+            obs_k, obs_d = dict(m.mps[keep].obs), dict(m.mps[drop].obs)
+            m.fuse(keep, drop)
+            assert drop not in m.mps
+            assert m.check_invariants() == [], trial
+            # Every former observer of ``drop`` observes ``keep`` now, through its own
+            # keypoint if it had none of ``keep``; the others' keypoints are freed.
+            for g, j in obs_d.items():
+                assert m.mps[keep].obs[g] == obs_k.get(g, j)
+                if g in obs_k:
+                    assert m.kfs[g].mp[j] == -1
+            assert set(m.mps[keep].obs) == set(obs_k) | set(obs_d)
