@@ -112,6 +112,7 @@ FEEDBACK_SLICE_S = 0.02  # one feedback round stops after this long (batches com
 # while their registration took less than GROUP_BUDGET_S, and stores them in one
 # transaction (see ``MapActor._apply_queued``).
 GROUP_MAX = 8
+GROUP_BUDGET_S = 0.05
 # Map actors registering at the same time (see ``MapRegistry.registering``).
 REGISTERING_MAX = 2
 # The mapper process's GIL switch interval (CPython's default is 5 ms). Every Redis round
@@ -119,7 +120,6 @@ REGISTERING_MAX = 2
 # that computes (another map's actor, a merge, a map copy) took up to the interval each
 # time, several times per batch. Set by ``hivemap mapper`` for its process.
 GIL_SWITCH_S = 0.001
-GROUP_BUDGET_S = 0.05
 
 
 @dataclass
@@ -212,6 +212,7 @@ class MapActor:
             # The map's lock first, then a registration slot: an actor waiting for its
             # map (held by a merge or a correction) does not hold a slot meanwhile.
             with self.lock, self.reg.registering:
+                t_in = time.monotonic()  # the budget counts from here, not the wait
                 while True:
                     h, batch, recv_ns, key, pre = item
                     if h.smap is not self.smap:
@@ -226,7 +227,7 @@ class MapActor:
                             REJECTED.labels(SERVICE, key, "internal").inc()
                             log.exception("keyframe batch failed", extra={"agent": h.agent})
                     if (len(group) >= GROUP_MAX
-                            or time.monotonic() - t_batch > GROUP_BUDGET_S):  # fmt: skip
+                            or time.monotonic() - t_in > GROUP_BUDGET_S):  # fmt: skip
                         break
                     try:
                         item = self.q.get_nowait()
