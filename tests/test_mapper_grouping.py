@@ -4,12 +4,10 @@ the acks must be exactly what registering them one at a time gives."""
 
 from __future__ import annotations
 
-import threading
 import time
 import zlib
 
 import numpy as np
-import redis
 from procs import gt_part
 
 from services.agent.comm import CommModule
@@ -17,7 +15,7 @@ from services.agent.sim_agent import SimAgent
 from services.mapper import persist
 from services.mapper.registration import MapperParams
 from services.mapper.server_map import digest
-from services.mapper.service import GROUP_MAX, REGISTERING_MAX, MapperService
+from services.mapper.service import GROUP_MAX, MapperService
 from shared.geometry import Sim3
 from shared.messages import Ack
 from shared.settings import Settings
@@ -72,6 +70,8 @@ def test_queued_batches_registered_together_give_the_same_map_store_and_acks(
     monkeypatch.setattr(service, "GROUP_BUDGET_S", 10.0)  # groups by count, not by time
     msgs = _interleaved(world)
     assert len(msgs) > 3 * GROUP_MAX
+    import redis
+
     # One batch at a time.
     one = _service(redis_url)
     acks_one = []
@@ -120,57 +120,3 @@ def test_queued_batches_registered_together_give_the_same_map_store_and_acks(
         for f in ("kf_ids", "mp_ids", "held_kf_ids", "missing_kf_ids"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
     assert _state(svc, redis_url) == (want_mem, want_stored)
-
-
-class _Counting(MapperService):
-    """Records how many map actors are inside registration at once."""
-
-    def __init__(self, *a, **k) -> None:
-        super().__init__(*a, **k)
-        self._n, self.most = 0, 0
-        self._count = threading.Lock()
-
-    def ingest(self, h, batch, undistorted=None):
-        with self._count:
-            self._n += 1
-            self.most = max(self.most, self._n)
-        time.sleep(0.02)  # long enough for every other actor to try to come in
-        try:
-            return super().ingest(h, batch, undistorted)
-        finally:
-            with self._count:
-                self._n -= 1
-
-
-def test_at_most_registering_max_map_actors_register_at_once(redis_url, world):
-    """Agents on maps of their own each have an actor; only REGISTERING_MAX of them
-    register at a time (the rest wait their turn), and every batch is still stored."""
-    seqs = {"A": "MH01", "B": "MH02", "C": "MH03", "D": "MH01"}
-    flights = {a: _flight(world, a, seq, (900, 1000), i) for i, (a, seq) in enumerate(seqs.items())}
-    for slots, want in ((REGISTERING_MAX, REGISTERING_MAX), (4, 4)):
-        r = redis.Redis.from_url(redis_url)
-        r.flushall()
-        r.close()
-        svc = _Counting(Settings(redis_url=redis_url))
-        svc.registry.registering = threading.BoundedSemaphore(slots)
-        actors = []
-        for a, msgs in flights.items():
-            h = svc.handler(a)
-            actor = svc.actor(h.map_id)
-            for key, payload in msgs:
-                actor.q.put((h, svc.decode_kf(key, payload), time.time_ns(), key, None))
-            actors.append(actor)
-
-        def drain(actor):
-            while not actor.q.empty():
-                actor._apply_queued(actor.q.get(), time.monotonic())
-
-        threads = [threading.Thread(target=drain, args=(a,)) for a in actors]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(60)
-        assert svc.most == want
-        store = Store(connect(redis_url))
-        for a, msgs in flights.items():
-            assert len(store.keyframe_ids(a)) == len(msgs)  # one keyframe per batch

@@ -81,15 +81,9 @@ class BatchQueue(queue.Queue):
 
 
 class MapRegistry:
-    def __init__(self, make_actor: Callable[[ServerMap], MapActor], registering: int = 2) -> None:
+    def __init__(self, make_actor: Callable[[ServerMap], MapActor]) -> None:
         self._make_actor = make_actor
         self.backlog = Backlog()
-        # Slots for map actors registering batches: while agents are on maps of their
-        # own (24 agents start on 24 maps), every actor registered at once, and each of
-        # a batch's many GIL releases (Redis, OpenCV, numpy) waited for all the others'
-        # turns: a 10 ms batch took 300 ms. Two at a time overlap one's I/O with the
-        # other's work; the rest wait their turn in their queues.
-        self.registering = threading.BoundedSemaphore(registering)
         self.maps: dict[str, ServerMap] = {}
         self._handlers: dict[str, AgentHandler] = {}
         self._by_map: dict[str, set[str]] = {}  # map id -> agents registering into it

@@ -113,8 +113,6 @@ FEEDBACK_SLICE_S = 0.02  # one feedback round stops after this long (batches com
 # transaction (see ``MapActor._apply_queued``).
 GROUP_MAX = 8
 GROUP_BUDGET_S = 0.05
-# Map actors registering at the same time (see ``MapRegistry.registering``).
-REGISTERING_MAX = 2
 # The mapper process's GIL switch interval (CPython's default is 5 ms). Every Redis round
 # trip and Zenoh put of a map actor gives the GIL away; getting it back from a thread
 # that computes (another map's actor, a merge, a map copy) took up to the interval each
@@ -209,9 +207,7 @@ class MapActor:
         svc = self.svc
         group: list[tuple] = []
         try:
-            # The map's lock first, then a registration slot: an actor waiting for its
-            # map (held by a merge or a correction) does not hold a slot meanwhile.
-            with self.lock, self.reg.registering:
+            with self.lock:
                 t_in = time.monotonic()  # the budget counts from here, not the wait
                 while True:
                     h, batch, recv_ns, key, pre = item
@@ -358,7 +354,7 @@ class MapperService:
         self.store = Store(connect(settings.redis_url))
         self.flights = Flights(self.store)
         self._stop = threading.Event()
-        self.registry = MapRegistry(self._new_actor, REGISTERING_MAX)
+        self.registry = MapRegistry(self._new_actor)
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
         self.session = None
