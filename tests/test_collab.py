@@ -131,8 +131,7 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     smap = svc.handlers["A"].smap
     assert len(svc.maps) == 1 and smap.check_invariants() == []
     assert sum(1 for _ in smap.kfs) == sum(len(_traj(svc, a)) for a in "AB")
-    # Every matched pair is one point now (fused after the merge's hold, in slices).
-    assert len(m.mp_q) > svc.collab.fuse_slice
+    # Every matched pair is one point now.
     assert not any(q in smap.mps and c in smap.mps and q != c
                    for q, c in zip(m.mp_q.tolist(), m.mp_c.tolist(), strict=True))  # fmt: skip
     # Zero-noise agents: one similarity aligns both trajectories to ground truth exactly.

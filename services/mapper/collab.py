@@ -20,9 +20,8 @@ may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per ba
   copied, ~30 ms at 2000 keyframes) and *built* outside it;
 - a correction is applied in memory under the lock in one step (a half-corrected map
   would register new keyframes against stale points) and stored in slices;
-- a match's matched points are fused a few pairs per hold, after the merge's or loop's
-  own hold: all of a merge's, at most ``loop_fuse_max`` of a loop's (the loop edge
-  carries the constraint);
+- a loop's matched points are fused a few pairs per hold, and at most
+  ``loop_fuse_max`` of them (the loop edge carries the constraint);
 - copies and corrections of a big map are spaced so that together they take at most
   ``opt_share`` of the mapper's time, and its global optimizations so that they take at
   most ``optimizer_share`` of an optimizer's core (a 3000-keyframe map's BA runs for its
@@ -223,15 +222,12 @@ class Collaboration:
         self.mark_dirty(map_id, "loop")
         return "loop"
 
-    def _fuse_in_slices(self, map_id: str, m: Match, limit: int | None = -1) -> None:
+    def _fuse_in_slices(self, map_id: str, m: Match) -> None:
         """The loop edge carries the constraint; fused points tie the two sides for BA.
         Matched points are the most observed ones (up to ~80 keyframes each in a dense
-        merged map), and fusing one moves all its observations, so they are fused a few
-        pairs per hold of the map's lock; of a loop only an evenly spread subset
-        (``limit``: default ``loop_fuse_max``, None all)."""
-        if limit is not None and limit < 0:
-            limit = self.loop_fuse_max
-        keep = _spread(len(m.mp_q), len(m.mp_q) if limit is None else limit)
+        merged map), and fusing one moves all its observations, so only an evenly spread
+        subset is fused, a few pairs per hold of the map's lock."""
+        keep = _spread(len(m.mp_q), self.loop_fuse_max)
         mp_q, mp_c = m.mp_q[keep], m.mp_c[keep]
         aliases: dict[int, int] = {}
         for i in range(0, len(mp_q), self.fuse_slice):
@@ -274,6 +270,7 @@ class Collaboration:
             moved = move_map(target, source, S_t_s)
             self.reg.merge(source.map_id, target.map_id, S_t_s)
             add_loop_edge(target, m.query_gid, m.cand_gid)
+            fres = fuse_matched(target, m.mp_q, m.mp_c)
             # Both sides are in the target's units now: the match's scale is spent on the
             # move, and the constraint between q and c is their relative pose (scale 1).
             tk = target.kfs
@@ -282,12 +279,7 @@ class Collaboration:
             old = self.loops.pop(source.map_id, [])
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
             self._persist_merge(target.map_id, source.map_id, moved.moved_kfs, moved.moved_mps)
-            self._persist(target.map_id, {}, set(), old + [lc])
-        # The matched points are fused after the merge, a slice per hold of the map's
-        # lock (all of them, unlike a loop's): fusing them in the merge's hold cost up to
-        # half a second of both maps' locks (the most observed points, each fuse moving
-        # all its observations), while every agent of both maps waited.
-        self._fuse_in_slices(target.map_id, m, limit=None)
+            self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
         MATCHES.labels("merge").inc()
         MERGES.inc()
         if self.retired is not None:
