@@ -31,10 +31,10 @@ LOCAL_FIT_KFS = 10
 # No correction until the agent's keyframes reach a spread (anchor_count): at least
 # ANCHOR_KFS, and as many more as it takes for their centres to spread ANCHOR_SPREAD
 # (RMS distance from their mean, in the VO's units: the initial median scene depth).
-# A fit on a short baseline is a lever: its rotation is off by about (how far the map moves those
-# keyframes) / (their spread), and that swings the reported pose by the same angle
-# times its distance from them. The first 20 keyframes of a team3 agent span 2 cm of
-# those units (they take off slowly): every global BA that moved them by a millimetre
+# A fit on a short baseline is a lever: its rotation is off by about (how far the map
+# moves those keyframes) / (their spread), and that swings the reported pose by the same
+# angle times its distance from them. The first 20 keyframes of a team3 agent span 2 cm
+# of those units (they take off slowly): every global BA that moved them by a millimetre
 # turned frame g by tenths of a degree, and the reported pose, a unit away, by 2-8 cm
 # where the VO was within 4 mm (replayed from a recorded run, bench/replay_feedback.py).
 ANCHOR_KFS = 20
