@@ -27,13 +27,6 @@ never registers an agent's keyframes out of order because of shedding. A hole th
 cannot fill (its buffer dropped the keyframe) closes after ``hole_max_s``, and the
 registration's orphan rule takes over.
 
-Whether waits are sustained is judged per queue (one per map actor): with many agents
-most maps are small and their batches wait a few milliseconds, while the one map most
-agents merged into queues for seconds. Judged over all queues together, any quick batch
-of a small map reset the overload clock, so the big map's batches were hardly ever shed
-(the likely reason why 48 agents at 84fb110, bench_ramp --overload, shed 28 batches while
-the accepted keyframes' p95 was 3.9 s).
-
 Pure bookkeeping: the service reports waits and asks; this class never sleeps or sends.
 """
 
@@ -69,8 +62,7 @@ class Overload:
         self.decay_s = decay_s
         self.hole_max_s = hole_max_s
         self.sustain_s = sustain_s
-        # Per queue (map actor): since when its waits stay above the background threshold.
-        self._over_since: dict[str, float] = {}
+        self._over_since: float | None = None  # waits above the background threshold
         self._wait = 0.0
         self._t = 0.0
         self.holes: dict[str, _Hole] = {}
@@ -82,15 +74,16 @@ class Overload:
         f = (0.15, 0.4, 0.7)
         return cls(tuple(x * shed_after_s for x in f), shed_after_s)  # type: ignore[arg-type]
 
-    def observe(self, waited_s: float, now: float, queue: str = "") -> None:
-        """A batch taken up from ``queue`` after waiting ``waited_s`` in it."""
+    def observe(self, waited_s: float, now: float) -> None:
+        """A batch taken up after waiting ``waited_s`` in the queue."""
         with self._lock:
             self._wait = max(waited_s, self.wait(now))
             self._t = now
             if waited_s > self.thresholds_s[2]:
-                self._over_since.setdefault(queue, now)
+                if self._over_since is None:
+                    self._over_since = now
             elif waited_s < self.thresholds_s[1]:
-                self._over_since.pop(queue, None)
+                self._over_since = None
 
     def wait(self, now: float) -> float:
         """Recent queue wait: the largest seen, decaying with ``decay_s``."""
@@ -106,24 +99,21 @@ class Overload:
         w = self.wait(now)
         return sum(w > t for t in self.thresholds_s)
 
-    def admit(self, agent: str, kf_ids: list[int], waited_s: float, now: float,
-              queue: str = "") -> bool:  # fmt: skip
-        """Whether to register a batch carrying new keyframes ``kf_ids``, taken up from
-        ``queue`` (batches with none -- updates of keyframes already stored -- are
-        always cheap and admitted)."""
+    def admit(self, agent: str, kf_ids: list[int], waited_s: float, now: float) -> bool:
+        """Whether to register a batch carrying new keyframes ``kf_ids`` (batches with
+        none -- updates of keyframes already stored -- are always cheap and admitted)."""
         if not kf_ids:
             return True
         with self._lock:
-            return self._admit(agent, min(kf_ids), waited_s, now, queue)
+            return self._admit(agent, min(kf_ids), waited_s, now)
 
-    def _admit(self, agent: str, lo: int, waited_s: float, now: float, queue: str) -> bool:
+    def _admit(self, agent: str, lo: int, waited_s: float, now: float) -> bool:
         hole = self.holes.get(agent)
         if hole is not None:
             if lo > hole.kf_id and now - hole.since < self.hole_max_s:
                 return False  # waits behind the hole
             del self.holes[agent]
-        since = self._over_since.get(queue)
-        sustained = since is not None and now - since >= self.sustain_s
+        sustained = self._over_since is not None and now - self._over_since >= self.sustain_s
         if waited_s > self.shed_after_s and sustained:
             h = self.holes.get(agent)
             self.holes[agent] = _Hole(min(lo, h.kf_id) if h else lo, now)

@@ -216,7 +216,7 @@ class MapActor:
                         # queued.
                         if self.reg.is_local(h.map_id):
                             self.reg.actor(h.map_id).q.put(item)
-                    elif svc.admit(h.agent, batch, recv_ns, t_batch, self.smap.map_id):
+                    elif svc.admit(h.agent, batch, recv_ns, t_batch):
                         try:
                             group.append((h, batch, recv_ns, svc.ingest(h, batch, pre)))
                         except Exception:
@@ -705,13 +705,11 @@ class MapperService:
         log.info("mapper running")
 
     # --- overload (services/mapper/overload.py) ------------------------------------------
-    def admit(self, agent: str, batch: KeyframeBatch, recv_ns: int, now: float,
-              map_id: str) -> bool:  # fmt: skip
-        """Whether the actor of ``map_id`` registers this batch now; a shed one is not
-        acknowledged."""
+    def admit(self, agent: str, batch: KeyframeBatch, recv_ns: int, now: float) -> bool:
+        """Whether a map actor registers this batch now; a shed one is not acknowledged."""
         waited = max(time.time_ns() - recv_ns, 0) * 1e-9
-        self.overload.observe(waited, now, map_id)
-        if self.overload.admit(agent, [k.id for k in batch.new_kfs], waited, now, map_id):
+        self.overload.observe(waited, now)
+        if self.overload.admit(agent, [k.id for k in batch.new_kfs], waited, now):
             return True
         SHED.labels("keyframe_batch").inc()
         self.note_level()
