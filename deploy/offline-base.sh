@@ -79,7 +79,14 @@ mkdir -p "$wheels_to"
 rm -f "$wheels_to"/*.whl
 cp -l "$wheels"/*.whl "$wheels_to"/ 2>/dev/null || cp "$wheels"/*.whl "$wheels_to"/
 if [ "$import" = 1 ]; then
-    docker import "$base" "$image" >/dev/null
+    # Imported again only when it is another tar: a new import is a new image id, and
+    # every layer built on the old one would be rebuilt.
+    tag=$(basename "$base" .tar)
+    have=$(docker image inspect -f '{{index .Config.Labels "org.hivemap.base"}}' "$image" \
+        2>/dev/null || true)
+    if [ "$have" != "$tag" ]; then
+        docker import --change "LABEL org.hivemap.base=$tag" "$base" "$image" >/dev/null
+    fi
 fi
 echo "base $base"
 echo "wheelhouse $wheels"

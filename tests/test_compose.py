@@ -6,7 +6,11 @@ namespace, which has no route out, and every overlay mount dies with it. Registr
 unreachable, so it builds with deploy/compose.offline.yml from a Debian base image and a
 wheelhouse that deploy/offline-base.sh makes once and keeps in a cache directory
 (HIVEMAP_DOCKER_CACHE, default ~/.cache/hivemap-docker): only the first run fetches
-Debian packages (debootstrap, from apt's mirror) and wheels (pip).
+Debian packages (debootstrap, from apt's mirror) and wheels (pip). The engine's data
+root (its images and build cache) is kept there too, under a lock, so a later run
+rebuilds only the layers whose inputs changed (deploy/Dockerfile installs the
+dependencies in a layer before the sources); a run that finds it locked uses a
+temporary one.
 
 The deployment runs scaled, `--scale mapper=2 --scale placerec=2` (issue 20 item 6):
 every healthcheck passes and both mappers say they live in Redis; two simulated agents
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
 import json
 import os
 import secrets
@@ -97,9 +102,10 @@ class Engine:
     """A dockerd of our own: its sockets, data and state under one temporary directory,
     its network namespace and mount namespace made for it."""
 
-    def __init__(self) -> None:
+    def __init__(self, data_root: Path | None = None) -> None:
         # Short: containerd's socket path under exec-root must fit a sockaddr_un.
         self.dir = Path(tempfile.mkdtemp(prefix="hm-dockerd-"))
+        self.data_root = data_root or self.dir / "data"
         self.sock = self.dir / "docker.sock"
         self.pidfile = self.dir / "dockerd.pid"
         self.log = self.dir / "dockerd.log"
@@ -115,7 +121,7 @@ class Engine:
     def start(self, timeout: float = 60.0) -> None:
         dockerd = [
             "dockerd", "--bridge=none", "--iptables=false", "--ip6tables=false",
-            "--data-root", str(self.dir / "data"), "--exec-root", str(self.dir / "exec"),
+            "--data-root", str(self.data_root), "--exec-root", str(self.dir / "exec"),
             "-H", f"unix://{self.sock}", "--pidfile", str(self.pidfile),
         ]  # fmt: skip
         # lo up, so the ports published in the namespace answer on its 127.0.0.1.
@@ -199,6 +205,15 @@ class Engine:
             # unshare --kill-child takes dockerd down with it
             self.proc.kill()
             self.proc.wait(10)
+
+    def reset(self) -> None:
+        """Nothing of an earlier run on a kept data root: one killed mid-test may have left
+        containers (with restart policies), networks or volumes; images stay."""
+        ids = self.docker("ps", "-aq").stdout.split()
+        if ids:
+            self.docker("rm", "-f", "-v", *ids, timeout=180)
+        self.docker("network", "prune", "-f")
+        self.docker("volume", "prune", "-af")
 
     def remove(self) -> None:
         # The overlay mounts were in the engine's mount namespace, gone with it.
@@ -313,6 +328,8 @@ def _run_deployment(engine: Engine, project: Path) -> None:
     t = time.monotonic()
     try:
         compose.run("build")
+        # Images an earlier build left untagged would pile up in the kept data root.
+        engine.docker("image", "prune", "-f", timeout=300)
         timings["build"] = time.monotonic() - t
         t = time.monotonic()
         compose.run("up", "-d", "--no-build", "--scale", f"mapper={MAPPERS}",
@@ -489,12 +506,21 @@ def test_compose_up_offline(tmp_path):
     why = _missing_tools()
     if why:
         pytest.skip(why)
-    engine = Engine()
+    # One engine at a time on the kept data root (two dockerds on one would corrupt it).
+    CACHE.mkdir(parents=True, exist_ok=True)
+    lock = (CACHE / "engine.lock").open("w")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        data_root: Path | None = CACHE / "engine"
+    except BlockingIOError:
+        data_root = None
+    engine = Engine(data_root)
     try:
         try:
             engine.start()
         except RuntimeError as e:
             pytest.skip(f"dockerd cannot start here: {e}")
+        engine.reset()
         _run_deployment(engine, _prepare(engine, tmp_path))
     finally:
         pid = engine.dockerd_pid
@@ -503,6 +529,7 @@ def test_compose_up_offline(tmp_path):
         mounted = [m for m in Path("/proc/self/mountinfo").read_text().splitlines()
                    if str(engine.dir) in m]  # fmt: skip
         engine.remove()
+        lock.close()
     # Item 4, at the engine level: no dockerd, containerd, shim or proxy of ours runs,
     # its namespaces went with it (nothing of it is mounted here), its directory is gone.
     assert pid is None or not Path(f"/proc/{pid}").exists(), pid
