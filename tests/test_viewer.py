@@ -1,10 +1,13 @@
 """The viewer in a real browser: Debian's Chromium, headless, driven by playwright, against
 a running stack with two simulated agents. Agents and map points appear, what is drawn
-moves, the page keeps its frame rate; a screenshot goes to bench/results/viewer.png."""
+moves, the page keeps its frame rate. Its screenshot and figures (viewer.png, viewer.json)
+go to $HIVEMAP_VIEWER_OUT when set, else to the test's temporary directory: a test run
+leaves the checked-in bench/results/ (bench/bench_viewer.py's) as it was."""
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -18,9 +21,6 @@ from live_stack import (
     viewer_page,
     wait_for,
 )
-
-ROOT = Path(__file__).resolve().parents[1]
-SHOT = ROOT / "bench/results/viewer.png"
 
 
 def _drawn(page) -> dict:
@@ -87,10 +87,12 @@ def test_viewer_shows_the_team(tmp_path):
             )
             assert len(page.query_selector_all("#maps button")) == 1
             time.sleep(2.0)  # the orbit turns a little further and the poses move on
-            SHOT.parent.mkdir(parents=True, exist_ok=True)
-            page.screenshot(path=str(SHOT))
+            out = Path(os.environ.get("HIVEMAP_VIEWER_OUT") or tmp_path)
+            out.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(out / "viewer.png"))
+            print(f"viewer screenshot: {out / 'viewer.png'}")
             events = page.inner_text("#events")
-            (ROOT / "bench/results/viewer.json").write_text(json.dumps(
+            (out / "viewer.json").write_text(json.dumps(
                 {"agents": 2, "fps": round(fps, 1), "draw_ms": round(draw_ms, 2),
                  "points_drawn": b["points"],
                  "events": events.splitlines()[:10]}, indent=2) + "\n")  # fmt: skip
