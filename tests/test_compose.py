@@ -213,7 +213,10 @@ class Engine:
         if ids:
             self.docker("rm", "-f", "-v", *ids, timeout=180)
         self.docker("network", "prune", "-f")
-        self.docker("volume", "prune", "-af")
+        # Debian's engine speaks API 1.41: no `volume prune --all`, so by name.
+        vols = self.docker("volume", "ls", "-q").stdout.split()
+        if vols:
+            self.docker("volume", "rm", "-f", *vols)
 
     def remove(self) -> None:
         # The overlay mounts were in the engine's mount namespace, gone with it.
