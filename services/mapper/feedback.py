@@ -223,6 +223,37 @@ def estimate_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 |
     return S_g_l
 
 
+def settled_scale(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> float | None:
+    """Map units per VO unit where the agent flies now: the scale of :func:`fit_settled`
+    on its newest keyframes a global optimization settled (VO poses as sent against map
+    poses). None without enough settled keyframes or spread (:func:`fit_settled`), or
+    for a degenerate fit.
+
+    Registration chains every new keyframe from its predecessor at the handler's scale,
+    and pose refinement cannot see a scale error: each keyframe is a few centimetres from
+    the one before and its new points are placed at the same scale. So the scale a global
+    optimization gives the map where the agent flies must reach the handler, or every
+    keyframe until the next optimization is placed at the old one. The per-keyframe
+    scale of the correction says only what the pose graph did (global BA, which runs
+    after it, moves the scale too) and only for keyframes in the optimizer's copy, which
+    an agent's newest one almost never is (it arrived during the optimization). In a
+    team5 run at 85a443d, MH01's map ended 2.4 % smaller per VO unit than agent1 flew
+    it (0.976), the handler stayed at ~1.0, and the 88 keyframes after the last applied
+    correction were placed 2 % too far apart: per-agent ATE 55.7 mm (its settled
+    keyframes alone 5.8 mm; the tail re-placed at the fitted scale 17.9 mm)."""
+    smap = h.smap
+    kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
+    if len(kfs) < MIN_FIT_KFS:
+        return None
+    T_l = np.stack([k.T_l_kf for k in kfs])
+    T_m = np.stack([k.T_m_kf for k in kfs])
+    settled = np.array([kf.optimized for kf in kfs], bool)
+    S = fit_settled(T_l, T_m, settled, n_local)
+    if S is None or not (np.isfinite(S.s) and S.s > 0):
+        return None
+    return float(S.s)
+
+
 def _pose_in(R: np.ndarray, t: np.ndarray, s: float, T_m_kf: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R @ T_m_kf[:3, :3]
