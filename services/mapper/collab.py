@@ -71,7 +71,15 @@ from .merge import (
     points_in_camera,
     relative_sim3,
 )
-from .metrics import CORRECTIONS, MAP_POINTS, MATCHES, MERGES, OPT_REQUESTS, QUEUE_DEPTH
+from .metrics import (
+    CORRECTIONS,
+    MAP_POINTS,
+    MATCHES,
+    MERGES,
+    OPT_PENDING,
+    OPT_REQUESTS,
+    QUEUE_DEPTH,
+)
 from .registry import MapRegistry
 
 log = logging.getLogger(__name__)
@@ -337,6 +345,7 @@ class Collaboration:
         with self._lock:
             self._dirty[map_id] = reason
             self._continues.pop(map_id, None)
+            OPT_PENDING.set(len(self._dirty))
 
     def _continue(self, map_id: str) -> None:
         """BA stopped on its time budget, the map part way to its optimum (on a busy
@@ -350,6 +359,7 @@ class Collaboration:
                 return
             self._continues[map_id] = n + 1
             self._dirty[map_id] = "continue"
+            OPT_PENDING.set(len(self._dirty))
 
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
@@ -364,6 +374,7 @@ class Collaboration:
                     self._dirty.pop(map_id, None)
             for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
                 self._dirty.pop(map_id, None)
+            OPT_PENDING.set(len(self._dirty))
             return out
 
     def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
