@@ -46,6 +46,7 @@ LINE_RATIO = 0.03  # centres this much narrower across than along lie on a line
 # reaching back until their centres spread 0.2 units.
 SCALE_FIT_KFS = 20
 SCALE_FIT_SPREAD = 0.2
+SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
 
 
 def anchor_count(
@@ -255,7 +256,10 @@ def settled_scale(
     0.2 at 7.0 / 7.0 / 8.1, the old rule at 7.4 / 5.9 / 9.1. On the team5 run both
     fits give 0.972-0.976 after each correction from 321 s on."""
     smap = h.smap
-    kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
+    # Under the map's lock, once per correction and agent: the newest SCALE_FIT_MAX of
+    # its keyframes are plenty (None if they never spread; the old rule then applies).
+    newest = sorted(h.local_poses)[-SCALE_FIT_MAX:]
+    kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in newest) if k is not None]
     if len(kfs) < MIN_FIT_KFS:
         return None
     T_l = np.stack([k.T_l_kf for k in kfs])
