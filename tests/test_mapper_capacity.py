@@ -80,3 +80,24 @@ def test_deferred_keyframe_events_go_out_a_slice_per_call(redis_url):
     a._publish_events(force=True)
     assert len(a.events) == 100 - EVENTS_PER_IDLE - EVENTS_PER_BATCH
     assert a.events[0] == ("map-a", EVENTS_PER_IDLE + EVENTS_PER_BATCH)  # oldest first
+
+
+def test_a_map_held_back_by_the_spacing_counts_as_pending(redis_url):
+    """hivemap_optimize_pending shows a request still to go out (what ``hivemap run-team``
+    waits for before it evaluates: requests and corrections alone looked settled while a
+    1000-keyframe map's loop closure waited 80 s for its turn)."""
+    from shared.metrics import sample_value
+
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    svc.registry.ensure_map("map-a")
+    now = time.monotonic()
+    c._run_s["map-a"] = 20.0
+    c._last_request["map-a"] = now
+    c.mark_dirty("map-a", "loop")
+    assert c.due(now + 10.0) == []
+    assert sample_value("hivemap_optimize_pending", {}) == 1
+    assert c.due(now + 20.0 / c.optimizer_share + 0.1) == [("map-a", "loop")]
+    assert sample_value("hivemap_optimize_pending", {}) == 0
+    c._continue("map-a")  # a BA that stopped on its time budget asks for another run
+    assert sample_value("hivemap_optimize_pending", {}) == 1

@@ -61,6 +61,7 @@ from shared.transport import Bus
 from . import persist
 from .capture import build_request, capture_map
 from .correction import apply_correction
+from .feedback import settled_scale
 from .merge import (
     LoopConstraint,
     add_loop_edge,
@@ -70,7 +71,15 @@ from .merge import (
     points_in_camera,
     relative_sim3,
 )
-from .metrics import CORRECTIONS, MAP_POINTS, MATCHES, MERGES, OPT_REQUESTS, QUEUE_DEPTH
+from .metrics import (
+    CORRECTIONS,
+    MAP_POINTS,
+    MATCHES,
+    MERGES,
+    OPT_PENDING,
+    OPT_REQUESTS,
+    QUEUE_DEPTH,
+)
 from .registry import MapRegistry
 
 log = logging.getLogger(__name__)
@@ -336,6 +345,7 @@ class Collaboration:
         with self._lock:
             self._dirty[map_id] = reason
             self._continues.pop(map_id, None)
+            OPT_PENDING.set(len(self._dirty))
 
     def _continue(self, map_id: str) -> None:
         """BA stopped on its time budget, the map part way to its optimum (on a busy
@@ -349,6 +359,7 @@ class Collaboration:
                 return
             self._continues[map_id] = n + 1
             self._dirty[map_id] = "continue"
+            OPT_PENDING.set(len(self._dirty))
 
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
@@ -363,6 +374,7 @@ class Collaboration:
                     self._dirty.pop(map_id, None)
             for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
                 self._dirty.pop(map_id, None)
+            OPT_PENDING.set(len(self._dirty))
             return out
 
     def request(self, map_id: str, reason: str) -> OptimizeRequest | None:
@@ -477,10 +489,19 @@ class Collaboration:
                 pipe.execute()
 
     def _rescale_handlers(self, smap, corr) -> None:
-        """Keyframes chained after the correction continue at the corrected scale of
-        the agent's newest keyframe (its relative translations are in agent units)."""
+        """Keyframes chained after the correction continue at the map's corrected scale
+        where the agent flies (its relative translations are in agent units): the scale
+        fitted on its newest settled keyframes (:func:`feedback.settled_scale`); without
+        such a fit, the correction's scale of the agent's newest keyframe, if it was in
+        the optimizer's copy."""
         scale = dict(zip(corr.kf_gids.tolist(), corr.kf_scale.tolist(), strict=True))
         for h in self.reg.handlers_of(smap.map_id):
+            fitted = settled_scale(h)
+            # A fit far from the scale the agent registers at is a broken fit, not drift
+            # (a merge sets the handler's scale from the match, the fit then agrees).
+            if fitted is not None and h.lam > 0 and 0.8 < fitted / h.scale < 1.25:
+                h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, fitted / h.lam)
+                continue
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)

@@ -19,6 +19,10 @@ OPT_REQUESTS = Counter(
     "hivemap_optimize_requests_total", "Map copies sent to the optimizer", ["reason"]
 )
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
+# Maps marked for an optimization whose request has not gone out yet: debounced, or held
+# back by the spacing of a big map's requests (collab.Collaboration.due), which at 1000
+# keyframes is over a minute. Requests and corrections counted alone cannot show it.
+OPT_PENDING = Gauge("hivemap_optimize_pending", "Maps marked for an optimization not yet requested")
 # Ownership (services/mapper/ownership.py), per mapper instance. Gauges mirror the
 # instance's own counts (they are kept in its Ownership and Leases objects).
 MAPS_OWNED = Gauge("hivemap_mapper_maps_owned", "Maps whose lease this mapper holds")
