@@ -17,6 +17,7 @@ import argparse
 import json
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -31,6 +32,7 @@ from common import (  # noqa: E402
 )
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
+from services.team_cli import wait_settled  # noqa: E402
 from shared.progress import track  # noqa: E402
 from shared.store import Store, connect  # noqa: E402
 from shared.trajectory import Trajectory, ate, read_tum  # noqa: E402
@@ -82,6 +84,12 @@ def run(seq: str, frames: str) -> dict:
         argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src,
                                  "--server", stack.zenoh_endpoint, "--out", str(out)]  # fmt: skip
         st, gt = run_agent(argv, out, agent)
+        # The server's keyframes as the server leaves them: after the optimizations the
+        # agent's last loops asked for (read at once, a run scored a map whose newest
+        # keyframes no optimization had yet placed; see team_cli.wait_settled).
+        t_settle = time.monotonic()
+        wait_settled(stack, timeout=180.0)
+        settle_s = time.monotonic() - t_settle
         metrics = mapper_metrics(stack)
         store = Store(connect(stack.settings.redis_url))
         ids, stamps, poses = store.trajectory(agent)
@@ -110,7 +118,7 @@ def run(seq: str, frames: str) -> dict:
         "ack_latency_p95_ms": 1e3 * st["ack_latency_p95_s"],
         "mapper_latency_mean_ms": mapper_latency_mean_ms(metrics, agent, missing=None),
         "ate_agent_kf_m": a_kf.rmse, "ate_server_kf_m": a_server.rmse,
-        "server_kfs": int(len(ids)),
+        "server_kfs": int(len(ids)), "server_settle_s": settle_s,
     }  # fmt: skip
 
 
