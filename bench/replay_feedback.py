@@ -37,7 +37,7 @@ from common import write_report  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.correction_history import CorrectionHistory  # noqa: E402
-from services.mapper.feedback import frame_correction  # noqa: E402
+from services.mapper.feedback import estimate_from_poses  # noqa: E402
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
 from shared.feedback_dump import load  # noqa: E402
@@ -83,10 +83,24 @@ def handler_of(r: dict) -> AgentHandler:
 
 def current(r: dict, history: CorrectionHistory) -> Sim3 | None:
     """The correction today's frame_correction computes from a recorded map state;
-    ``history``: the agent's earlier ones, as its handler on the server keeps them."""
+    ``history``: the agent's earlier ones, as its handler on the server keeps them.
+
+    The same steps as :func:`~services.mapper.feedback.frame_correction` on the recorded
+    arrays (its handler's keyframes in order, the newest last), without building a
+    server map per record; the map's estimate is kept in the record, so replaying
+    another history rule on the same dump costs only the rule."""
     if r["T_l"] is None:
         return None
-    return frame_correction(handler_of(r), Settings().mapper.feedback_correction_kfs, history)
+    if "_estimate" not in r:
+        r["_estimate"] = estimate_from_poses(
+            r["T_l"], r["T_m"], r["optimized"], Settings().mapper.feedback_correction_kfs
+        )
+    S_g_l = r["_estimate"]
+    if S_g_l is None:
+        return None
+    p = r["T_l"][-1, :3, 3]
+    history.add(S_g_l, p)
+    return history.significant(S_g_l, p)
 
 
 def recompute(a: dict) -> dict[int, Sim3 | None]:

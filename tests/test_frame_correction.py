@@ -261,3 +261,34 @@ def test_a_correction_well_above_the_scatter_of_its_estimates_is_applied():
     sent = np.array([r[2] for r in rows[2:]])
     assert vo.mean() > 0.03 and est.mean() < 0.2 * vo.mean(), (vo.mean(), est.mean())
     assert sent.mean() < 0.35 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
+
+
+def test_replay_computes_what_the_server_sends():
+    """bench/replay_feedback.py replays a recorded run from the mapper's arrays (no server
+    map per record): each correction must be the one frame_correction sends from a
+    handler holding the same keyframes, history and all."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "bench" / "replay_feedback.py"
+    spec = importlib.util.spec_from_file_location("replay_feedback", path)
+    rf = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rf)
+    _, T_true = _flight(240)
+    M = Sim3(exp_so3(np.array([0.1, 0.4, -0.2])), np.array([3.0, 1.0, -1.0]), 0.7)
+    T_l = np.stack([_drifted(T, 2 * k) for k, T in enumerate(T_true)])
+    rng = np.random.default_rng(3)
+    h_server, h_replay, sent = CorrectionHistory(), CorrectionHistory(), 0
+    for n in range(120, 241, 15):
+        T_m = np.stack([M.transform_pose(T) for T in T_true[:n]])
+        T_m[:, :3, 3] += rng.normal(0.0, 0.004, (n, 3))
+        opt = np.arange(n) < n - 5
+        rec = {"agent": "A", "map_id": "map-A", "ids": np.arange(n), "T_l": T_l[:n],
+               "T_m": T_m, "optimized": opt, "stamps": np.arange(n, dtype=np.int64)}  # fmt: skip
+        want = frame_correction(rf.handler_of(rec), history=h_server)
+        got = rf.current(rec, h_replay)
+        assert (want is None) == (got is None)
+        if want is not None:
+            np.testing.assert_allclose(got.matrix(), want.matrix(), atol=1e-12)
+            sent += 1
+    assert sent >= 5

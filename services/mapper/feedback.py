@@ -212,12 +212,23 @@ def estimate_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 |
         return None
     T_l = np.stack([k.T_l_kf for k in kfs])
     T_m = np.stack([k.T_m_kf for k in kfs])
+    settled = np.array([kf.optimized for kf in kfs], bool)
+    return estimate_from_poses(T_l, T_m, settled, n_local)
+
+
+def estimate_from_poses(
+    T_l: np.ndarray, T_m: np.ndarray, settled: np.ndarray, n_local: int = LOCAL_FIT_KFS
+) -> Sim3 | None:
+    """:func:`estimate_correction` on an agent's keyframes in keyframe order: VO poses
+    ``T_l``, map poses ``T_m`` ((N, 4, 4)) and which of them an optimization settled
+    (also what bench/replay_feedback.py calls on recorded map states)."""
+    if len(T_l) < MIN_FIT_KFS:
+        return None
     # Frame g waits for the agent's first keyframes to spread (anchor_count): before,
     # any fit is a lever. Then it is where the settled map puts the agent's flight so
     # far, as a whole (fit_frame).
     if anchor_count(T_l[:, :3, 3]) is None:
         return None
-    settled = np.array([kf.optimized for kf in kfs], bool)
     A_m_l = fit_frame(T_l, T_m, settled)
     S_m_l = fit_settled(T_l, T_m, settled, n_local)
     if A_m_l is None or S_m_l is None:
