@@ -111,6 +111,18 @@ def recompute(a: dict) -> dict[int, Sim3 | None]:
     return {r["sent_ns"]: current(r, history) for r in a["all_fcs"]}
 
 
+def with_truth(a: dict, gt: Trajectory) -> None:
+    """Put the ground truth at each keyframe's stamp in place of the map's poses in every
+    recorded map state of agent ``a`` (``--oracle``): what the correction would do with
+    an exact map, the same keyframes, settled at the same times. Any frame of the truth
+    serves: frame g is fitted onto the map (feedback.fit_frame)."""
+    for r in a["all_fcs"]:
+        if r["T_l"] is not None:
+            i = np.clip(np.searchsorted(gt.stamps_ns, r["stamps"]), 0, len(gt) - 1)
+            r["T_m"] = gt.poses[i].copy()
+            r.pop("_estimate", None)
+
+
 def replay(a: dict, fc=None) -> np.ndarray:
     """The agent's reported poses, frame by frame: the chunks offered to ReportedPose
     before the frame they arrived ahead of; ``fc(record)`` recomputes each correction
@@ -137,11 +149,15 @@ def main() -> int:
     ap.add_argument("dump")
     ap.add_argument("out", help="the run's output directory (agentN_gt.tum)")
     ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
+    ap.add_argument("--oracle", action="store_true",
+                    help="ground truth in place of the map's keyframe poses")  # fmt: skip
     args = ap.parse_args()
     rows, sums, report = [], np.zeros(3), []
     for ag, a in runs(args.dump).items():
         gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
         st = a["vo"]["stamps"]
+        if args.oracle:
+            with_truth(a, gt)
 
         def err(T, st=st, gt=gt) -> float:
             return ate(Trajectory(st, T), gt).rmse
@@ -166,6 +182,7 @@ def main() -> int:
         # "current": this checkout's frame correction replayed on the recorded map states.
         data = {
             "dump": str(args.dump),
+            "oracle": args.oracle,
             "run_out": str(args.out),
             "agents": report,
             "vo_sum_m": sums[0],

@@ -263,10 +263,7 @@ def test_a_correction_well_above_the_scatter_of_its_estimates_is_applied():
     assert sent.mean() < 0.35 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
 
 
-def test_replay_computes_what_the_server_sends():
-    """bench/replay_feedback.py replays a recorded run from the mapper's arrays (no server
-    map per record): each correction must be the one frame_correction sends from a
-    handler holding the same keyframes, history and all."""
+def _replay_module():
     import importlib.util
     from pathlib import Path
 
@@ -274,6 +271,37 @@ def test_replay_computes_what_the_server_sends():
     spec = importlib.util.spec_from_file_location("replay_feedback", path)
     rf = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(rf)
+    return rf
+
+
+def test_oracle_replay_puts_the_truth_in_place_of_the_map():
+    """replay_feedback --oracle: each recorded map state gets the true pose at each
+    keyframe's stamp, and the estimate made from it is recomputed (not the cached one)."""
+    rf = _replay_module()
+    stamps, T_true = _flight(120)
+    T_l = np.stack([_drifted(T, 3 * k) for k, T in enumerate(T_true)])
+    rec = {"T_l": T_l, "T_m": T_l.copy(), "optimized": np.ones(120, bool),
+           "stamps": stamps, "_estimate": None}  # fmt: skip
+    a = {"all_fcs": [rec, {"T_l": None}]}
+    rf.with_truth(a, load_euroc_gt("MH01"))
+    np.testing.assert_allclose(rec["T_m"], T_true)
+    assert "_estimate" not in rec
+    S = rf.current(rec, CorrectionHistory())  # no scatter yet: nothing sent
+    assert S is None and rec["_estimate"] is not None
+    # The truth's estimate takes the drift out at the newest keyframe (frame g: the
+    # truth through A_m_l fitted on all of them).
+    A = A_vo(T_l, T_true, 120)
+    p_true = A.inverse().apply(T_true[-1:, :3, 3])[0]
+    e_vo = np.linalg.norm(T_l[-1, :3, 3] - p_true)
+    e_est = np.linalg.norm(rec["_estimate"].apply(T_l[-1:, :3, 3])[0] - p_true)
+    assert e_est < 0.1 * e_vo, (e_est, e_vo)
+
+
+def test_replay_computes_what_the_server_sends():
+    """bench/replay_feedback.py replays a recorded run from the mapper's arrays (no server
+    map per record): each correction must be the one frame_correction sends from a
+    handler holding the same keyframes, history and all."""
+    rf = _replay_module()
     _, T_true = _flight(240)
     M = Sim3(exp_so3(np.array([0.1, 0.4, -0.2])), np.array([3.0, 1.0, -1.0]), 0.7)
     T_l = np.stack([_drifted(T, 2 * k) for k, T in enumerate(T_true)])
