@@ -385,6 +385,10 @@ class Ack:
     # Optional (added within v1): the ``seq`` of the agent's batch this ack answers, -1
     # not said. The agent learns from it which of its (unacknowledged) updates arrived.
     seq: int = -1
+    # Optional (added within v1): set, batch ``seq`` was shed by an overloaded server --
+    # nothing it carried was taken -- and the agent should send it again, and nothing
+    # new, only after this many seconds (back-pressure instead of its resend timeout).
+    retry_after_s: float | None = None
 
     def encode(self) -> bytes:
         d = {
@@ -399,6 +403,8 @@ class Ack:
             d["missing_kf_ids"] = np.asarray(self.missing_kf_ids, np.int64)
         if self.seq >= 0:
             d["seq"] = self.seq
+        if self.retry_after_s is not None:
+            d["retry_after_s"] = float(self.retry_after_s)
         return packb(d)
 
     @staticmethod
@@ -414,7 +420,16 @@ class Ack:
             held_kf_ids=_opt_ids(d, "held_kf_ids"),
             missing_kf_ids=_opt_ids(d, "missing_kf_ids"),
             seq=_int(d["seq"], "seq") if "seq" in d else -1,
+            retry_after_s=_retry_after(d.get("retry_after_s")),
         )
+
+
+def _retry_after(v: Any) -> float | None:
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 3600:
+        raise DecodeError("retry_after_s: expected seconds in [0, 3600]")
+    return float(v)
 
 
 @dataclass

@@ -373,3 +373,61 @@ def test_an_answered_update_batch_is_no_evidence_of_a_lost_keyframe():
     c.on_ack(Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, seq=m2.seq), 0.21)
     assert c.queued_kfs == [] and not c.resent_reasons
     assert c.check_timeouts(2.5) == 1 and c.queued_kfs == [1]
+
+
+def _nack(seq: int, retry_after_s: float) -> Ack:
+    return Ack("A", "m", np.zeros(0, np.int64), np.zeros(0, np.int64), 0, 0, seq=seq,
+               retry_after_s=retry_after_s)  # fmt: skip
+
+
+def test_a_shed_batch_goes_out_again_after_the_retry_after_with_its_successors():
+    """An overloaded server sheds a batch (and the agent's later ones, waiting behind
+    it) with a NACK: all of them go back to the queue at once, nothing goes out before
+    the retry-after, and then they go again together, oldest first -- not one by one
+    after backed-off resend timeouts (seconds, doubling)."""
+    kfs = _keyframes(4)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100, jitter=0.0, window=8)
+    c.add_keyframe(kfs[0].kf)
+    c.add_map_points(kfs[0].new_mps)
+    m0 = c.next_message(0.0, 0, 0)
+    c.on_ack(_ack([0], m0.new_mps.ids), 0.05)
+    c.update_keyframe(KeyframeUpdate(0, -1, np.eye(4), -1, np.eye(4)))
+    for k in kfs[1:3]:
+        c.add_keyframe(k.kf)
+        c.add_map_points(k.new_mps)
+    m1 = c.next_message(0.1, 0, 0)  # keyframes 1 and 2, their points, 0's update
+    assert [k.id for k in m1.new_kfs] == [1, 2] and len(m1.kf_updates) == 1
+    c.add_keyframe(kfs[3].kf)
+    c.add_map_points(kfs[3].new_mps)
+    m2 = c.next_message(0.2, 0, 0)
+    assert [k.id for k in m2.new_kfs] == [3]
+    window = c.window
+    c.on_ack(_nack(m1.seq, 1.0), 0.8)
+    c.on_ack(_nack(m2.seq, 1.0), 0.85)
+    assert c.queued_kfs == [1, 2, 3] and c.stats.batches_shed == 2
+    assert c.window < window  # a congestion signal, as a late ack
+    assert 0 in c.kf_updates  # the shed batch's update goes again too
+    for t in (0.9, 1.3, 1.7):
+        m = c.next_message(t, 0, 0)
+        assert m is None or not m.new_kfs  # held back: no keyframe before 1.8 s
+    m = c.next_message(1.9, 0, 0)
+    assert [k.id for k in m.new_kfs] == [1, 2, 3]  # one run, as the server shed it
+    assert set(m.new_mps.ref_kf.tolist()) == {1, 2, 3}  # with their points
+    c.on_ack(_ack([1, 2, 3], m.new_mps.ids), 2.0)
+    assert c.unacked_kf_ids == set() and not c.mps
+    assert c.resent_reasons[("kf", "shed")] == 3
+    # No timeout resend of what the NACK requeued: it was sent again, and acked.
+    assert c.check_timeouts(500.0) == 0
+
+
+def test_a_nack_of_a_batch_already_sent_again_does_not_requeue_it():
+    """Only what a shed batch carried and has not gone out since goes back."""
+    kfs = _keyframes(2)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100, jitter=0.0)
+    c.add_keyframe(kfs[0].kf)
+    m0 = c.next_message(0.0, 0, 0)
+    c._requeue_kf(0, "test")  # sent again (e.g. the server asked for it)
+    m1 = c.next_message(0.1, 0, 0)
+    assert [k.id for k in m1.new_kfs] == [0]
+    c.on_ack(_nack(m0.seq, 0.5), 0.2)
+    assert c.queued_kfs == [] and 0 in c.sent_kfs

@@ -28,6 +28,22 @@ def test_golden_bytes(name, make, cls):
     assert decoded.encode() == golden
 
 
+def test_ack_retry_after_is_optional_both_ways():
+    """A NACK (added within v1): an old peer's ack has none, a shed batch's has it, and
+    a value that is not seconds is a clear decode error."""
+    old = sample_ack()
+    assert Ack.decode(old.encode()).retry_after_s is None
+    nack = sample_ack()
+    nack.seq, nack.retry_after_s = 7, 1.5
+    back = Ack.decode(nack.encode())
+    assert (back.seq, back.retry_after_s) == (7, 1.5)
+    for bad in (-1.0, float("nan"), "soon", True, 1e9):
+        d = msgpack.unpackb(old.encode(), raw=False, strict_map_key=False)
+        d["retry_after_s"] = bad
+        with pytest.raises(DecodeError, match="retry_after_s"):
+            Ack.decode(msgpack.packb(d, use_bin_type=True))
+
+
 def test_batch_round_trip_values():
     b = sample_batch()
     d = KeyframeBatch.decode(b.encode())

@@ -26,6 +26,14 @@ agents send 3-7x their data when acks took longer than that). So, as TCP does:
   radio link (timeouts without overload) a small window with prompt acks still carries
   tens of keyframes a second.
 
+An overloaded mapper sheds batches that waited too long in its queue and says so: a
+NACK (an ``Ack`` of that batch with ``retry_after_s``). Everything the batch carried goes
+back to the queue at once (oldest first, so a run the server shed together goes out
+again together) and no keyframe leaves before the retry-after (+-``jitter``) is over;
+the window halves as on a late ack. Without the NACK the agent learned of a shed batch
+only from its resend timeout, seconds and doubling, while the server shed everything
+it sent after it meanwhile (it registers an agent's keyframes in order).
+
 Every keyframe stays here, and is resent with backoff, until the server acknowledges
 it: the backlog of an overloaded or absent server waits in this buffer (CCM-SLAM §4.5),
 not in the VO's local map, which is trimmed for the VO's compute (§4.2) and may let go
@@ -134,6 +142,7 @@ class CommStats:
     mp_resent: int = 0
     kf_dropped_unacked: int = 0
     window_cuts: int = 0  # times the window halved on a late ack
+    batches_shed: int = 0  # batches the server NACKed (overload)
     ack_latencies: list[float] = field(default_factory=list)
     ack_sent_at: list[float] = field(default_factory=list)  # first send of each, monotonic
 
@@ -176,6 +185,7 @@ class CommModule:
         self._backoff = 1.0  # carried from the last timeout to first sends (Karn)
         self._last_ack_t = -1e18
         self._last_probe = -1e18
+        self._hold_until = -1e18  # no keyframe goes out before (a NACK's retry-after)
         self.attempts: dict[int, int] = {}  # keyframe id -> sends so far (unacked ones)
         self._mp_attempts: dict[int, int] = {}
         self.held: set[int] = set()  # sent keyframes the server said it holds
@@ -374,6 +384,9 @@ class CommModule:
         publish-to-ack latency of each keyframe acknowledged for the first time."""
         lat: list[float] = []
         self._last_ack_t = now
+        if ack.retry_after_s is not None and ack.seq >= 0:
+            self._on_shed(ack.seq, ack.retry_after_s, now)
+            return lat
         acked = ack.kf_ids.tolist()
         newest_seq = max((self._last_seq_by_kf.get(i, -1) for i in acked), default=-1)
         for i in acked:
@@ -441,6 +454,21 @@ class CommModule:
         self._on_update_ack(ack.seq)
         self.stats.ack_latencies.extend(lat)
         return lat
+
+    def _on_shed(self, seq: int, retry_after_s: float, now: float) -> None:
+        """The server shed batch ``seq`` (overload): all it carried goes back to the
+        queue now, and no keyframe goes out for ``retry_after_s``."""
+        self.stats.batches_shed += 1
+        for i in [i for i, s in self.sent_kfs.items() if s.seq == seq]:
+            self._requeue_kf(i, "shed")  # with its points of the same batch
+        for i in self._mps_by_seq.of(seq):
+            if self.sent_mps.get(i) is not None and self.sent_mps[i].seq == seq:
+                self._requeue_mp(i, "shed")
+        if self._upd_msgs.pop(seq, None) is not None:
+            self._requeue_updates(seq, "shed")
+        wait = retry_after_s * (1.0 + self.jitter * (2.0 * self._rng.random() - 1.0))
+        self._hold_until = max(self._hold_until, now + wait)
+        self._cut_window(now)
 
     def _on_update_ack(self, seq: int) -> None:
         """The server answered batch ``seq``: its updates arrived, and those of earlier
@@ -537,7 +565,10 @@ class CommModule:
         room = int(self.window) - self.in_flight
         if self._last_probe < 0:
             self._last_probe = now  # silence is counted from the first message on
-        if room <= 0 and now - max(self._last_ack_t, self._last_probe) >= self.rto:
+        held_back = now < self._hold_until  # a NACK's retry-after: no keyframe at all
+        if held_back:
+            room = 0
+        elif room <= 0 and now - max(self._last_ack_t, self._last_probe) >= self.rto:
             # A full window and a silent server: one new keyframe per timeout goes out
             # anyway, so a server that came back (a restarted mapper) is noticed at its
             # first ack -- which requeues everything older at once (gap) -- and not only
@@ -551,7 +582,7 @@ class CommModule:
             if kf is None:
                 self.queued_kfs.pop(j)
                 continue
-            urgent = kid in self.urgent
+            urgent = kid in self.urgent and not held_back
             if room <= 0 and not urgent:
                 j += 1  # a later one may be urgent
                 continue

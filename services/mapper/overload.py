@@ -14,18 +14,37 @@ first:
                   optimizer wait (merges and loop closures come later, nothing is lost:
                   events queue up and an overdue optimization request still goes out
                   once the level drops);
-4. ``keyframes``  once batches have waited past the ``background`` threshold for
-                  ``sustain_s`` (overload, not one long lock hold), a batch that
-                  waited longer than ``shed_after_s`` is not registered
-                  and not acknowledged: the agent keeps it and resends it after its
-                  backed-off timeout. So the latency of every keyframe the mapper
-                  accepts stays bounded, and nothing acknowledged is lost.
+4. ``keyframes``  once a map actor's batches have waited past the ``background``
+                  threshold for ``sustain_s`` (overload, not one long lock hold), a
+                  batch of that actor that waited longer than ``shed_after_s`` is not
+                  registered: the mapper answers it with a NACK (an ``Ack`` of that
+                  batch with ``retry_after_s``), and the agent sends it again after that
+                  long, oldest first, with nothing new before it. So the latency of
+                  every keyframe the mapper accepts stays bounded, the backlog waits in
+                  the agents' buffers (CCM-SLAM §4.5), and nothing acknowledged is lost.
+
+Whether waits are sustained is judged per queue (one per map actor): with many agents
+most maps are small and their batches wait a few milliseconds, while the one map most
+agents merged into queues for seconds; one clock over all queues was reset by any quick
+batch of a small map, so the big map's batches were hardly ever shed (48 agents at
+84fb110, bench_ramp --overload: 28 batches shed, accepted p95 3.9 s). And a queue in
+overload stays there until its waits stayed low for ``calm_s``: shedding drains the
+queue, and a clock reset by the first quick batch after that let the next
+``sustain_s`` of batches through unshed however long they had waited.
 
 Shedding a keyframe batch opens a hole in that agent's stream: its later batches are
-shed too until the hole's keyframe comes back (agents resend oldest first), so the map
-never registers an agent's keyframes out of order because of shedding. A hole the agent
-cannot fill (its buffer dropped the keyframe) closes after ``hole_max_s``, and the
+shed too (and NACKed, so the agent sends the whole run again together) until the hole's
+keyframe comes back, so the map never registers an agent's keyframes out of order
+because of shedding. The NACK is what makes this cheap: without it the agent learned
+of a shed batch only from its backed-off resend timeout (seconds, doubling), while the
+hole held back everything it sent meanwhile; at 48 agents (per-queue clock, no NACK,
+e033846) 431 keyframes were not stored 60 s after the flights. A hole the agent cannot
+fill (its buffer dropped the keyframe) closes after ``hole_max_s``, and the
 registration's orphan rule takes over.
+
+The retry-after is the queue's recent wait beyond the shedding threshold (at least
+``retry_min_s``, at most ``retry_max_s``): about how long the backlog over the budget
+takes to drain, so agents come back when the queue has room for them.
 
 Pure bookkeeping: the service reports waits and asks; this class never sleeps or sends.
 """
@@ -54,17 +73,29 @@ class Overload:
         decay_s: float = 2.0,
         hole_max_s: float = 10.0,
         sustain_s: float = 2.0,
+        calm_s: float | None = None,
+        retry_min_s: float = 0.5,
+        retry_max_s: float = 5.0,
     ) -> None:
         if not (0 < thresholds_s[0] <= thresholds_s[1] <= thresholds_s[2] <= shed_after_s):
             raise ValueError("overload thresholds must rise up to shed_after_s")
+        if not 0 < retry_min_s <= retry_max_s:
+            raise ValueError("retry_min_s must be positive and at most retry_max_s")
         self.thresholds_s = thresholds_s
         self.shed_after_s = shed_after_s
         self.decay_s = decay_s
         self.hole_max_s = hole_max_s
         self.sustain_s = sustain_s
-        self._over_since: float | None = None  # waits above the background threshold
+        self.calm_s = sustain_s if calm_s is None else calm_s
+        self.retry_min_s = retry_min_s
+        self.retry_max_s = retry_max_s
+        # Per queue (map actor): since when its waits stay above the background threshold,
+        # and, once that is sustained, since when they stay below the feedback one.
+        self._over_since: dict[str, float] = {}
+        self._calm_since: dict[str, float] = {}
         self._wait = 0.0
         self._t = 0.0
+        self._qwait: dict[str, tuple[float, float]] = {}  # queue -> (wait, when)
         self.holes: dict[str, _Hole] = {}
         self._lock = threading.Lock()  # map actors report from their own threads
 
@@ -74,20 +105,46 @@ class Overload:
         f = (0.15, 0.4, 0.7)
         return cls(tuple(x * shed_after_s for x in f), shed_after_s)  # type: ignore[arg-type]
 
-    def observe(self, waited_s: float, now: float) -> None:
-        """A batch taken up after waiting ``waited_s`` in the queue."""
+    def observe(self, waited_s: float, now: float, queue: str = "") -> None:
+        """A batch taken up from ``queue`` after waiting ``waited_s`` in it."""
         with self._lock:
             self._wait = max(waited_s, self.wait(now))
             self._t = now
+            self._qwait[queue] = (max(waited_s, self._queue_wait(queue, now)), now)
+            since = self._over_since.get(queue)
             if waited_s > self.thresholds_s[2]:
-                if self._over_since is None:
-                    self._over_since = now
-            elif waited_s < self.thresholds_s[1]:
-                self._over_since = None
+                if since is None:
+                    self._over_since[queue] = now
+                self._calm_since.pop(queue, None)
+            elif waited_s < self.thresholds_s[1] and since is not None:
+                if not self._sustained(queue, now):
+                    del self._over_since[queue]  # one long hold, not overload
+                elif now - self._calm_since.setdefault(queue, now) >= self.calm_s:
+                    del self._over_since[queue]
+                    del self._calm_since[queue]
+
+    def _sustained(self, queue: str, now: float) -> bool:
+        since = self._over_since.get(queue)
+        return since is not None and now - since >= self.sustain_s
+
+    def shedding(self, queue: str, now: float) -> bool:
+        """Whether ``queue``'s batches that waited past ``shed_after_s`` are shed now."""
+        with self._lock:
+            return self._sustained(queue, now)
+
+    def _queue_wait(self, queue: str, now: float) -> float:
+        w, t = self._qwait.get(queue, (0.0, now))
+        return w * math.exp(-max(now - t, 0.0) / self.decay_s)
 
     def wait(self, now: float) -> float:
         """Recent queue wait: the largest seen, decaying with ``decay_s``."""
         return self._wait * math.exp(-max(now - self._t, 0.0) / self.decay_s)
+
+    def retry_after(self, now: float, queue: str = "") -> float:
+        """How long an agent whose batch ``queue`` shed waits before sending again."""
+        with self._lock:
+            w = self._queue_wait(queue, now) - self.shed_after_s
+        return min(max(w, self.retry_min_s), self.retry_max_s)
 
     def level(self, now: float) -> int:
         with self._lock:
@@ -99,22 +156,23 @@ class Overload:
         w = self.wait(now)
         return sum(w > t for t in self.thresholds_s)
 
-    def admit(self, agent: str, kf_ids: list[int], waited_s: float, now: float) -> bool:
-        """Whether to register a batch carrying new keyframes ``kf_ids`` (batches with
-        none -- updates of keyframes already stored -- are always cheap and admitted)."""
+    def admit(self, agent: str, kf_ids: list[int], waited_s: float, now: float,
+              queue: str = "") -> bool:  # fmt: skip
+        """Whether to register a batch carrying new keyframes ``kf_ids``, taken up from
+        ``queue`` (batches with none -- updates of keyframes already stored -- are
+        always cheap and admitted)."""
         if not kf_ids:
             return True
         with self._lock:
-            return self._admit(agent, min(kf_ids), waited_s, now)
+            return self._admit(agent, min(kf_ids), waited_s, now, queue)
 
-    def _admit(self, agent: str, lo: int, waited_s: float, now: float) -> bool:
+    def _admit(self, agent: str, lo: int, waited_s: float, now: float, queue: str) -> bool:
         hole = self.holes.get(agent)
         if hole is not None:
             if lo > hole.kf_id and now - hole.since < self.hole_max_s:
                 return False  # waits behind the hole
             del self.holes[agent]
-        sustained = self._over_since is not None and now - self._over_since >= self.sustain_s
-        if waited_s > self.shed_after_s and sustained:
+        if waited_s > self.shed_after_s and self._sustained(queue, now):
             h = self.holes.get(agent)
             self.holes[agent] = _Hole(min(lo, h.kf_id) if h else lo, now)
             return False

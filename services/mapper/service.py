@@ -216,7 +216,7 @@ class MapActor:
                         # queued.
                         if self.reg.is_local(h.map_id):
                             self.reg.actor(h.map_id).q.put(item)
-                    elif svc.admit(h.agent, batch, recv_ns, t_batch):
+                    elif svc.admit(h, batch, recv_ns, t_batch, self.smap.map_id):
                         try:
                             group.append((h, batch, recv_ns, svc.ingest(h, batch, pre)))
                         except Exception:
@@ -705,13 +705,22 @@ class MapperService:
         log.info("mapper running")
 
     # --- overload (services/mapper/overload.py) ------------------------------------------
-    def admit(self, agent: str, batch: KeyframeBatch, recv_ns: int, now: float) -> bool:
-        """Whether a map actor registers this batch now; a shed one is not acknowledged."""
+    def admit(self, h: AgentHandler, batch: KeyframeBatch, recv_ns: int, now: float,
+              map_id: str = "") -> bool:  # fmt: skip
+        """Whether the actor of ``map_id`` registers this batch now. A shed one is
+        answered with a NACK (an ack of no keyframe that names the batch and says when
+        to send it again), so the agent resends it then instead of after its backed-off
+        timeout."""
         waited = max(time.time_ns() - recv_ns, 0) * 1e-9
-        self.overload.observe(waited, now)
-        if self.overload.admit(agent, [k.id for k in batch.new_kfs], waited, now):
+        self.overload.observe(waited, now, map_id)
+        if self.overload.admit(h.agent, [k.id for k in batch.new_kfs], waited, now, map_id):
             return True
         SHED.labels("keyframe_batch").inc()
+        retry = self.overload.retry_after(now, map_id)
+        if self.bus is not None:
+            nack = Ack(batch.agent, h.map_id, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                       h.kf_high, time.time_ns(), seq=batch.seq, retry_after_s=retry)  # fmt: skip
+            self.bus.put(keys.agent_ack(batch.agent), nack.encode())
         self.note_level()
         return False
 
