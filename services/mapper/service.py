@@ -365,6 +365,9 @@ class MapperService:
         self.level = 0
         self._level_lock = threading.Lock()
         self._pose_last: dict[str, float] = {}
+        # Per agent: (handler, result) registered in memory whose store failed (see
+        # ``store_and_ack``).
+        self._unstored: dict[str, list] = {}
         self.collab = Collaboration(self.registry, self.store,
                                     settings.mapper.optimize_min_interval_s)  # fmt: skip
         m = settings.mapper
@@ -494,12 +497,25 @@ class MapperService:
         transaction, then acknowledges each: an ack always means "stored". Returns the
         acks in order."""
         t0 = time.perf_counter()
-        changed = [(h, ing.res) for h, _, _, ing in group if ing.res.changed]
+        # What an earlier store of these agents failed to write goes first: it is in the
+        # map in memory, so a resend of it is only acknowledged (a duplicate), and that
+        # ack would say "stored" for a keyframe Redis never got.
+        # (The same handler only: a map taken over and back is a new one, from Redis.)
+        changed = [(h, res) for h in {id(h): h for h, _, _, _ in group}.values()
+                   for hu, res in self._unstored.pop(h.agent, []) if hu is h]  # fmt: skip
+        changed += [(h, ing.res) for h, _, _, ing in group if ing.res.changed]
         if changed:
-            pipe = self.own.pipeline(changed[0][0].map_id)
-            for h, res in changed:
-                persist.write_result(pipe, h, res, self.names)
-            pipe.execute()
+            try:
+                pipe = self.own.pipeline(changed[0][0].map_id)
+                for h, res in changed:
+                    persist.write_result(pipe, h, res, self.names)
+                pipe.execute()
+            except Exception:
+                # Not acknowledged; written (as the map is then) with the agent's next
+                # batch that stores, before its ack.
+                for h, res in changed:
+                    self._unstored.setdefault(h.agent, []).append((h, res))
+                raise
         t_store = (time.perf_counter() - t0) / len(group)
         acks = []
         for h, batch, recv_ns, ing in group:
