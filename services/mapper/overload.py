@@ -74,7 +74,7 @@ class Overload:
         hole_max_s: float = 10.0,
         sustain_s: float = 2.0,
         calm_s: float | None = None,
-        retry_min_s: float = 0.5,
+        retry_min_s: float = 1.0,
         retry_max_s: float = 5.0,
     ) -> None:
         if not (0 < thresholds_s[0] <= thresholds_s[1] <= thresholds_s[2] <= shed_after_s):
