@@ -159,5 +159,5 @@ def test_the_mapper_nacks_a_shed_batch_with_a_retry_after(redis_url):
     nacks = [Ack.decode(p) for _, p in bus.sent]
     assert [n.seq for n in nacks] == [batch.seq, later.seq]
     assert all(len(n.kf_ids) == 0 and 0.5 <= n.retry_after_s <= 5.0 for n in nacks)
-    assert nacks[0].retry_after_s == pytest.approx(2.0 - 0.6, abs=0.1)
+    assert nacks[0].retry_after_s == pytest.approx(2.0 - svc.overload.shed_after_s, abs=0.1)
     svc.store.close()

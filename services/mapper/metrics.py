@@ -56,7 +56,7 @@ OVERLOAD_LEVEL = Gauge(
 SHED = Counter(
     "hivemap_mapper_shed_total",
     "Work shed under overload: poses not stored, feedback rounds slowed, event and "
-    "optimization rounds deferred, keyframe batches left unacknowledged for a resend",
+    "optimization rounds deferred, keyframe batches NACKed for a resend after a retry-after",
     ["what"],
 )
 

@@ -69,7 +69,7 @@ class Overload:
     def __init__(
         self,
         thresholds_s: tuple[float, float, float] = (0.1, 0.25, 0.4),
-        shed_after_s: float = 0.6,
+        shed_after_s: float = 0.5,
         decay_s: float = 2.0,
         hole_max_s: float = 10.0,
         sustain_s: float = 2.0,
