@@ -431,3 +431,32 @@ def test_a_nack_of_a_batch_already_sent_again_does_not_requeue_it():
     assert [k.id for k in m1.new_kfs] == [0]
     c.on_ack(_nack(m0.seq, 0.5), 0.2)
     assert c.queued_kfs == [] and 0 in c.sent_kfs
+
+
+def test_nacks_in_a_row_double_the_hold_up_to_a_cap_until_keyframes_are_taken():
+    """A server far over its capacity NACKs what comes back after a hold too: each such
+    NACK doubles the next hold (1, 2, 4, 8, 8 s), and an ack that takes keyframes ends
+    it. NACKs of one shed run (the agent's later batches, shed behind the first) do not
+    count twice."""
+    kfs = _keyframes(3)
+    c = CommModule("A", rate_hz=1000, resend_timeout_s=100, jitter=0.0,
+                   shed_backoff_max_s=8.0)  # fmt: skip
+    for k in kfs[:2]:
+        c.add_keyframe(k.kf)
+    t, holds = 0.0, []
+    m = c.next_message(t, 0, 0)
+    for _ in range(5):
+        c.on_ack(_nack(m.seq, 1.0), t + 0.1)
+        c.on_ack(_nack(m.seq, 1.0), t + 0.2)  # the same run: no extra doubling
+        start = t = t + 0.2  # the hold counts from the last NACK
+        m = None
+        while m is None:
+            t = round(t + 0.05, 2)
+            m = c.next_message(t, 0, 0)
+        holds.append(round(t - start, 1))
+    assert holds == [1.0, 2.0, 4.0, 8.0, 8.0]
+    c.on_ack(_ack([k.id for k in m.new_kfs]), t + 0.1)  # taken: the streak ends
+    c.add_keyframe(kfs[2].kf)
+    m = c.next_message(t + 0.2, 0, 0)
+    c.on_ack(_nack(m.seq, 1.0), t + 0.3)
+    assert c._hold_until == pytest.approx(t + 1.3)

@@ -88,7 +88,11 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
     env = {**os.environ, "HIVEMAP_REDIS_URL": redis_url, "HIVEMAP_ZENOH__MODE": "client",
            "HIVEMAP_ZENOH__CONNECT": json.dumps([zenoh_router]), "HIVEMAP_LOG_LEVEL": "WARNING",
            # Every keyframe must stay stored to be counted: no culling here.
-           "HIVEMAP_MAPPER__REDUNDANCY": "false"}  # fmt: skip
+           "HIVEMAP_MAPPER__REDUNDANCY": "false",
+           # Six agents: a smaller overload than the bench's 48, so batches are shed
+           # sooner (the default is 0.5 s), or the agents' windows alone would bound the
+           # queue here and the shedding (NACK, resend, the hole rule) would go untested.
+           "HIVEMAP_MAPPER__SHED_AFTER_S": "0.3"}  # fmt: skip
     mapper = subprocess.Popen([HIVEMAP, "mapper"], env={**env, "HIVEMAP_METRICS_PORT": str(port)})
     agents = None
     try:
@@ -134,7 +138,8 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
           f"accepted latency p95 <= {p95:.2f} s, {resent} keyframes resent "
           f"({resent / made:.1%}), {lost} lost unacked, {min(kbps):.0f}-{max(kbps):.0f} "
           f"kB/s per agent, flights {min(flights):.0f}-{max(flights):.0f} s, agents done "
-          f"{after:.0f} s after the flights; shed {_shed(text.decode())}")  # fmt: skip
+          f"{after:.0f} s after the flights; shed {_shed(text.decode())}; latency "
+          f"histogram {[(le, int(n)) for le, n in buckets if le >= 0.1]}")  # fmt: skip
     # Nothing is lost: every keyframe made is stored and acknowledged within 60 s of the
     # end of the flights (the agents' buffers hold the backlog however long it lasts).
     for s in stats:
@@ -143,8 +148,9 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
         assert len(store.keyframe_ids(s["agent"])) == s["keyframes"], s["agent"]
     assert after <= 60
     # The server was overloaded: acknowledgements lagged production (the backlog sat in
-    # the agents, which is what bounds the latency below).
+    # the agents, which is what bounds the latency below), and it shed keyframe batches.
     assert max(s["ack_latency_p95_s"] for s in stats) > 1.0
+    assert _shed(text.decode()).get("keyframe_batch", 0) > 0
     # Without shedding the agents' windows alone keep a queue of seconds standing (issue
     # 18: >= 10 s at 32 agents before the windows; 3.9 s at 48 with them, 84fb110); the
     # mapper sheds what waited past shed_after_s and NACKs it, so what it accepts is

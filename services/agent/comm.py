@@ -32,7 +32,11 @@ back to the queue at once (oldest first, so a run the server shed together goes 
 again together) and no keyframe leaves before the retry-after (+-``jitter``) is over;
 the window halves as on a late ack. Without the NACK the agent learned of a shed batch
 only from its resend timeout, seconds and doubling, while the server shed everything
-it sent after it meanwhile (it registers an agent's keyframes in order).
+it sent after it meanwhile (it registers an agent's keyframes in order). A NACK of what
+went out after a hold doubles the next hold (up to ``shed_backoff_max_s``) until the
+server takes keyframes again: a server far over its capacity gets fewer batches it can
+only shed (each a resend; in tests/test_overload_scale.py's simulation 0.85 -> 0.50
+resends per keyframe, and 2.9 -> 1.2 with a third of the capacity).
 
 Every keyframe stays here, and is resent with backoff, until the server acknowledges
 it: the backlog of an overloaded or absent server waits in this buffer (CCM-SLAM §4.5),
@@ -162,6 +166,7 @@ class CommModule:
         window_min: int = 2,
         buffer_bytes: int = 256_000_000,
         session: int | None = None,
+        shed_backoff_max_s: float = 8.0,
     ) -> None:
         self.agent = agent
         # This flight's session: a new one per process, so the server tells this flight's
@@ -186,6 +191,8 @@ class CommModule:
         self._last_ack_t = -1e18
         self._last_probe = -1e18
         self._hold_until = -1e18  # no keyframe goes out before (a NACK's retry-after)
+        self._shed_streak = 0  # holds in a row that ended in a NACK again
+        self.shed_backoff_max_s = shed_backoff_max_s
         self.attempts: dict[int, int] = {}  # keyframe id -> sends so far (unacked ones)
         self._mp_attempts: dict[int, int] = {}
         self.held: set[int] = set()  # sent keyframes the server said it holds
@@ -388,6 +395,8 @@ class CommModule:
             self._on_shed(ack.seq, ack.retry_after_s, now)
             return lat
         acked = ack.kf_ids.tolist()
+        if acked:
+            self._shed_streak = 0  # the server takes keyframes again
         newest_seq = max((self._last_seq_by_kf.get(i, -1) for i in acked), default=-1)
         for i in acked:
             if self._unbuffer(i) is not None:
@@ -466,7 +475,11 @@ class CommModule:
                 self._requeue_mp(i, "shed")
         if self._upd_msgs.pop(seq, None) is not None:
             self._requeue_updates(seq, "shed")
-        wait = retry_after_s * (1.0 + self.jitter * (2.0 * self._rng.random() - 1.0))
+        if now >= self._hold_until:  # else a NACK of the same shed run
+            self._shed_streak += 1
+        mult = 2.0 ** min(self._shed_streak - 1, 16)
+        wait = max(min(retry_after_s * mult, self.shed_backoff_max_s), retry_after_s)
+        wait *= 1.0 + self.jitter * (2.0 * self._rng.random() - 1.0)
         self._hold_until = max(self._hold_until, now + wait)
         self._cut_window(now)
 
