@@ -30,7 +30,10 @@ batch of a small map, so the big map's batches were hardly ever shed (48 agents 
 84fb110, bench_ramp --overload: 28 batches shed, accepted p95 3.9 s). And a queue in
 overload stays there until its waits stayed low for ``calm_s``: shedding drains the
 queue, and a clock reset by the first quick batch after that let the next
-``sustain_s`` of batches through unshed however long they had waited.
+``sustain_s`` of batches through unshed however long they had waited. Each entry into
+overload lets ``sustain_s`` of batches through whatever their wait (~30 keyframes a
+second at 48 agents), so it is 1 s, not 2: a merge's hold of a map's lock takes
+0.2-1 s.
 
 Shedding a keyframe batch opens a hole in that agent's stream: its later batches are
 shed too (and NACKed, so the agent sends the whole run again together) until the hole's
@@ -72,8 +75,8 @@ class Overload:
         shed_after_s: float = 0.5,
         decay_s: float = 2.0,
         hole_max_s: float = 10.0,
-        sustain_s: float = 2.0,
-        calm_s: float | None = None,
+        sustain_s: float = 1.0,
+        calm_s: float = 2.0,
         retry_min_s: float = 1.0,
         retry_max_s: float = 5.0,
     ) -> None:
@@ -86,7 +89,7 @@ class Overload:
         self.decay_s = decay_s
         self.hole_max_s = hole_max_s
         self.sustain_s = sustain_s
-        self.calm_s = sustain_s if calm_s is None else calm_s
+        self.calm_s = calm_s
         self.retry_min_s = retry_min_s
         self.retry_max_s = retry_max_s
         # Per queue (map actor): since when its waits stay above the background threshold,
