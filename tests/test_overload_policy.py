@@ -160,4 +160,12 @@ def test_the_mapper_nacks_a_shed_batch_with_a_retry_after(redis_url):
     assert [n.seq for n in nacks] == [batch.seq, later.seq]
     assert all(len(n.kf_ids) == 0 and 0.5 <= n.retry_after_s <= 5.0 for n in nacks)
     assert nacks[0].retry_after_s == pytest.approx(2.0 - svc.overload.shed_after_s, abs=0.1)
+    # A resend of keyframes the map has is only acknowledged: admitted, and it opens no
+    # hole (the agent would never send them again to fill it).
+    svc.overload.holes.clear()
+    old = sample_batch()
+    old.new_kfs[0].id = 0
+    h.has_kf = lambda i: i == 0
+    assert svc.admit(h, old, ns - int(2e9), now, "q")
+    assert not svc.overload.holes and len(bus.sent) == 2
     svc.store.close()

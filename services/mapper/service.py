@@ -729,7 +729,11 @@ class MapperService:
         timeout."""
         waited = max(time.time_ns() - recv_ns, 0) * 1e-9
         self.overload.observe(waited, now, map_id)
-        if self.overload.admit(h.agent, [k.id for k in batch.new_kfs], waited, now, map_id):
+        # Keyframes the map has (a resend whose ack was late) are only acknowledged: they
+        # cost nothing, and a hole opened at one of them would never be filled (the agent
+        # has its ack and sends it no more).
+        new = [k.id for k in batch.new_kfs if not h.has_kf(k.id)]
+        if self.overload.admit(h.agent, new, waited, now, map_id):
             return True
         SHED.labels("keyframe_batch").inc()
         retry = self.overload.retry_after(now, map_id)
