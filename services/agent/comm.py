@@ -35,8 +35,10 @@ only from its resend timeout, seconds and doubling, while the server shed everyt
 it sent after it meanwhile (it registers an agent's keyframes in order). A NACK of what
 went out after a hold doubles the next hold (up to ``shed_backoff_max_s``) until the
 server takes keyframes again: a server far over its capacity gets fewer batches it can
-only shed (each a resend; in tests/test_overload_scale.py's simulation 0.85 -> 0.50
-resends per keyframe, and 2.9 -> 1.2 with a third of the capacity).
+only shed (each a resend; in tests/test_overload_scale.py's simulation 0.85 -> 0.58
+resends per keyframe, and 2.9 -> 1.7 with a third of the capacity). The cap is short:
+a hold that outlasts the queue leaves the server idle while agents wait (at the end of
+a flight, few agents are left to keep it busy).
 
 Every keyframe stays here, and is resent with backoff, until the server acknowledges
 it: the backlog of an overloaded or absent server waits in this buffer (CCM-SLAM §4.5),
@@ -166,7 +168,7 @@ class CommModule:
         window_min: int = 2,
         buffer_bytes: int = 256_000_000,
         session: int | None = None,
-        shed_backoff_max_s: float = 8.0,
+        shed_backoff_max_s: float = 4.0,
     ) -> None:
         self.agent = agent
         # This flight's session: a new one per process, so the server tells this flight's
