@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
-from common import mapper_metrics, stack_settings, table, write_report  # noqa: E402
+from common import ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
@@ -76,17 +76,20 @@ def _holds_over(metrics: dict[str, float], s: float) -> float:
 
 
 def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
-    """py-spy samplers on the server's services for ``seconds`` (collapsed stacks, one
-    file per service; the rate is low so the sampler's own CPU stays small)."""
+    """py-spy samplers on the server's services and the simulated agents' process for
+    ``seconds`` (collapsed stacks, one file per process; the rate is low so the
+    sampler's own CPU stays small). The agents' process is sampled with its idle
+    threads too (``--idle``): where an agent waits is what tells why it falls behind."""
     spy = Path(sys.executable).with_name("py-spy")
     if not spy.exists():
         raise SystemExit("--profile needs py-spy in the venv: .venv/bin/pip install py-spy")
     out.mkdir(parents=True, exist_ok=True)
     return [subprocess.Popen([str(spy), "record", "--pid", str(pids[name]), "--rate", "50",
                               "--nonblocking", "--format", "raw", "--duration",
-                              str(int(seconds)), "--output", str(out / f"{name}.txt")],
+                              str(int(seconds)), "--output", str(out / f"{name}.txt"),
+                              *(["--idle"] if name == "agents" else [])],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            for name in SERVER if name in pids]  # fmt: skip
+            for name in (*SERVER, "agents") if name in pids]  # fmt: skip
 
 
 # Leaf frames of a thread that waits (py-spy's idle test is unreliable with
@@ -142,8 +145,12 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         t0 = time.monotonic()
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
-        spies = _profilers(pids, seconds, profile / f"{n}") if profile else []
+        watch = ProcWatch(p.pid)
+        server_watch = {k: ProcWatch(pids[k]) for k in SERVER if k in pids}
+        spies = _profilers({**pids, "agents": p.pid}, seconds, profile / f"{n}") if profile else []
         p.wait(seconds * 4 + 300)
+        agents_proc = watch.stop()
+        server_proc = {k: w.stop() for k, w in server_watch.items()}
         for spy in spies:
             spy.wait(60)
         wall = time.monotonic() - t0
@@ -232,6 +239,25 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         },  # fmt: skip
         "wall_s": wall,
         "flight_s": flight,
+        # How far behind real time the simulated agents fell (a run that fell behind
+        # offered less load than its agent count says): flight beyond its nominal
+        # length (the trajectory's duration), worst agent, and the p95 of how late a
+        # frame was stepped (worst agent).
+        "behind_s_max": max(
+            s["flight_s"] - s.get("nominal_flight_s", s["flight_s"]) for s in stats
+        ),
+        "frame_late_p95_ms_max": 1e3 * max(s.get("latency_s_p95", 0.0) for s in stats),
+        # The agents' process: CPU it used (cores over the run) and how long its
+        # threads were ready but waited for a core (seconds per second of run).
+        "agents_process": {
+            "cores": round(agents_proc["cpu_s"] / wall, 3),
+            "runqueue_wait_per_s": round(agents_proc["runqueue_wait_s"] / wall, 3),
+            "threads": agents_proc["threads"],
+        },
+        # The same run-queue wait for the server's services: CPU they were denied.
+        "server_runqueue_wait_per_s": {
+            k: round(v["runqueue_wait_s"] / wall, 3) for k, v in server_proc.items()
+        },
         "loadavg_1m_before_after": [load0, load1],
     }
 
@@ -290,7 +316,9 @@ def main() -> int:
         r = rows[-1]
         print(f"  mapper p95 {r['mapper_p95_ms']:.0f} ms, round trip p95 {r['p95_ms']:.0f} ms, "
               f"{r['kB_per_s_per_agent']:.0f} kB/s/agent, {r['server_cpu_ms_per_kf']:.1f} "
-              f"server CPU ms/kf, cores {r['cpu_cores']}", flush=True)  # fmt: skip
+              f"server CPU ms/kf, cores {r['cpu_cores']}; agents behind real time by "
+              f"{r['behind_s_max']:.1f} s (frames late p95 {r['frame_late_p95_ms_max']:.0f} "
+              f"ms), agents' process {r['agents_process']}", flush=True)  # fmt: skip
     print(
         table(
             rows,

@@ -8,6 +8,7 @@ import json
 import os
 import platform
 import subprocess
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -128,3 +129,44 @@ def run_agent(argv: list[str], out: Path, agent: str):
     env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
     subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
     return agent_stats(out, agent), read_tum(out / f"{agent}_gt.tum")
+
+
+class ProcWatch:
+    """CPU and run-queue wait of a process (every thread's, summed) sampled in the
+    background until it exits, so the figures survive the process: how much CPU the
+    simulated agents got, and how long their threads were ready to run but waited for
+    a core (``/proc/PID/task/*/schedstat``: on-CPU ns, run-queue wait ns, slices)."""
+
+    def __init__(self, pid: int, interval: float = 0.5) -> None:
+        self.pid = pid
+        self._tasks: dict[str, tuple[int, int]] = {}  # tid -> (cpu ns, wait ns)
+        self._interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _sample(self) -> bool:
+        base = Path(f"/proc/{self.pid}/task")
+        try:
+            tids = [t.name for t in base.iterdir()]
+        except OSError:
+            return False
+        for tid in tids:
+            with contextlib.suppress(OSError, ValueError):
+                run, wait, _ = (base / tid / "schedstat").read_text().split()
+                self._tasks[tid] = (int(run), int(wait))
+        return True
+
+    def _run(self) -> None:
+        while not self._stop.is_set() and self._sample():
+            self._stop.wait(self._interval)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join(5)
+        self._sample()
+        return {
+            "cpu_s": sum(r for r, _ in self._tasks.values()) * 1e-9,
+            "runqueue_wait_s": sum(w for _, w in self._tasks.values()) * 1e-9,
+            "threads": len(self._tasks),
+        }

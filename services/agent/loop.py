@@ -134,6 +134,9 @@ class AgentStats:
     resent: dict = field(default_factory=dict)
     duration_s: float = 0.0
     flight_s: float = 0.0
+    # What the flight takes in real time (first to last frame's stamp, over ``speed``;
+    # 0 unpaced): flight_s beyond it is how far behind real time the agent fell.
+    nominal_flight_s: float = 0.0
     ack_latency_median_s: float = float("nan")
     ack_latency_p95_s: float = float("nan")
     bytes_per_s: float = 0.0
@@ -311,6 +314,8 @@ class AgentLoop:
             self._service(0.0)
         frames.close()
         st.flight_s = time.monotonic() - t_start
+        if clock.stamp0 is not None and clock.last is not None and self.speed > 0:
+            st.nominal_flight_s = (clock.last - clock.stamp0) * 1e-9 / self.speed
         if feedback_dump.enabled() and self.vo_poses:
             feedback_dump.record(self.agent, "vo", stamps=np.array([t for t, _ in self.vo_poses]),
                                  T=np.stack([T for _, T in self.vo_poses]),
