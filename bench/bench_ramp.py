@@ -6,8 +6,11 @@ agents' round-trip p95 (publish -> ack), traffic per agent, CPU per service (cor
 /proc over the flight and flush), server CPU ms per keyframe (mapper + placerec +
 optimizer, per keyframe the agents made) and what that makes in agents per core at the
 simulated agents' keyframe rate; plus what the mapper shed under overload. The agents
-run in one process of their own session at nice 10 (see shared.runtime.set_priority):
-they stand for robots, and the figure is the server's.
+run in processes of their own session at nice 10, four agents per process (see
+shared.runtime.set_priority and services/agent/sim_cli.py): they stand for robots, and
+the figure is the server's. Each step says how far behind real time the agents fell
+(a step whose agents fell behind offered less load than its count says), the CPU
+their processes used and how long they waited for a core.
 
     .venv/bin/python bench/bench_ramp.py [--counts 1,8,16,24,32] [--seconds 60]
 
@@ -87,7 +90,7 @@ def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subproce
     return [subprocess.Popen([str(spy), "record", "--pid", str(pids[name]), "--rate", "50",
                               "--nonblocking", "--format", "raw", "--duration",
                               str(int(seconds)), "--output", str(out / f"{name}.txt"),
-                              *(["--idle"] if name == "agents" else [])],
+                              *(["--idle", "--subprocesses"] if name == "agents" else [])],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             for name in (*SERVER, "agents") if name in pids]  # fmt: skip
 
@@ -253,6 +256,7 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
             "cores": round(agents_proc["cpu_s"] / wall, 3),
             "runqueue_wait_per_s": round(agents_proc["runqueue_wait_s"] / wall, 3),
             "threads": agents_proc["threads"],
+            "processes": agents_proc["processes"],
         },
         # The same run-queue wait for the server's services: CPU they were denied.
         "server_runqueue_wait_per_s": {
