@@ -225,6 +225,11 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
             metrics, "hivemap_processing_seconds", 'kind="kf_batch",service="mapper"'
         ),
         "lock_holds_over_200ms": _holds_over(metrics, 0.2),
+        # Full collections of the mapper's garbage collector (every thread stops).
+        "mapper_gc_full": {
+            "count": metrics.get('hivemap_gc_pause_seconds_count{generation="2"}', 0.0),
+            "seconds": metrics.get('hivemap_gc_pause_seconds_sum{generation="2"}', 0.0),
+        },
         # The maps at the end (merged ones report nothing): how many, and their size.
         "maps_at_end": sum(
             1 for k, v in metrics.items() if k.startswith("hivemap_map_keyframes{") and v > 0
