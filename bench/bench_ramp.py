@@ -79,10 +79,10 @@ def _holds_over(metrics: dict[str, float], s: float) -> float:
 
 
 def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
-    """py-spy samplers on the server's services and the simulated agents' process for
-    ``seconds`` (collapsed stacks, one file per process; the rate is low so the
-    sampler's own CPU stays small). The agents' process is sampled with its idle
-    threads too (``--idle``): where an agent waits is what tells why it falls behind."""
+    """py-spy samplers on the server's services (and, given as "agents", the simulated
+    agents' processes) for ``seconds`` (collapsed stacks, one file per process; the rate
+    is low so the sampler's own CPU stays small). The agents' processes are sampled with
+    their idle threads too (``--idle``): where an agent waits tells why it falls behind."""
     spy = Path(sys.executable).with_name("py-spy")
     if not spy.exists():
         raise SystemExit("--profile needs py-spy in the venv: .venv/bin/pip install py-spy")
@@ -129,7 +129,9 @@ def top_of(path: Path, n: int = 25) -> str:
     return "\n".join(lines)
 
 
-def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
+def run_step(
+    n: int, seconds: float, profile: Path | None = None, profile_agents: bool = False
+) -> dict:
     stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix="hivemap-ramp-"))
@@ -150,7 +152,8 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         watch = ProcWatch(p.pid)
         server_watch = {k: ProcWatch(pids[k]) for k in SERVER if k in pids}
-        spies = _profilers({**pids, "agents": p.pid}, seconds, profile / f"{n}") if profile else []
+        prof = {**pids, "agents": p.pid} if profile_agents else pids
+        spies = _profilers(prof, seconds, profile / f"{n}") if profile else []
         p.wait(seconds * 4 + 300)
         agents_proc = watch.stop()
         server_proc = {k: w.stop() for k, w in server_watch.items()}
@@ -310,6 +313,10 @@ def main() -> int:
     ap.add_argument("--profile", type=Path, default=None,
                     help="py-spy each server service over the flight; collapsed stacks "
                          "under DIR/<agents>/<service>.txt and a summary printed")  # fmt: skip
+    ap.add_argument("--profile-agents", action="store_true",
+                    help="with --profile, the simulated agents' processes too (idle threads "
+                         "included; py-spy on tens of threads takes CPU the agents need: "
+                         "at 16 agents they fell 120 s behind real time)")  # fmt: skip
     args = ap.parse_args()
     ov = args.overload
     args.counts = args.counts or ("8,48" if ov else "1,8,16,24,32")
@@ -318,7 +325,7 @@ def main() -> int:
     rows = []
     for n in (int(x) for x in args.counts.split(",")):
         print(f"{n} agent(s) ...", flush=True)
-        rows.append(run_step(n, args.seconds, args.profile))
+        rows.append(run_step(n, args.seconds, args.profile, args.profile_agents))
         if args.profile:
             for f in sorted((args.profile / str(n)).glob("*.txt")):
                 print(top_of(f), flush=True)
