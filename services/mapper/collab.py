@@ -434,8 +434,10 @@ class Collaboration:
                 points = dict(smap.mps)
                 journal = smap.record_new_points()
             try:
+                # Between slices it sleeps while batches wait, at most 0.1 s a slice (a
+                # second in all for 200k points): the corrected map is not held back long.
                 plan = plan_correction(smap, c, snap_poses, points, journal,
-                                       pause=reg.wait_for_batches)  # fmt: skip
+                                       pause=lambda: reg.wait_for_batches(0.1))  # fmt: skip
                 del points
                 reg.wait_for_batches()
                 with reg.lock(c.map_id):
