@@ -151,7 +151,7 @@ def run_step(
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         watch = ProcWatch(p.pid)
-        server_watch = {k: ProcWatch(pids[k]) for k in SERVER if k in pids}
+        server_watch = {k: ProcWatch(pids[k], 1.0, children=False) for k in SERVER if k in pids}
         prof = {**pids, "agents": p.pid} if profile_agents else pids
         spies = _profilers(prof, seconds, profile / f"{n}") if profile else []
         p.wait(seconds * 4 + 300)

@@ -138,8 +138,9 @@ class ProcWatch:
     run but waited for a core (``/proc/PID/task/*/schedstat``: on-CPU ns, run-queue
     wait ns, slices)."""
 
-    def __init__(self, pid: int, interval: float = 0.5) -> None:
+    def __init__(self, pid: int, interval: float = 0.5, children: bool = True) -> None:
         self.pid = pid
+        self.children = children  # follow child processes (a scan of /proc per sample)
         self._tasks: dict[tuple[int, str], tuple[int, int]] = {}  # (pid, tid) -> cpu, wait
         self.pids: set[int] = {pid}
         self._interval = interval
@@ -165,7 +166,8 @@ class ProcWatch:
 
     def _sample(self) -> bool:
         alive = False
-        self.pids |= self._descendants()
+        if self.children:
+            self.pids |= self._descendants()
         for pid in self.pids:
             base = Path(f"/proc/{pid}/task")
             try:
