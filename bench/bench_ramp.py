@@ -6,8 +6,11 @@ agents' round-trip p95 (publish -> ack), traffic per agent, CPU per service (cor
 /proc over the flight and flush), server CPU ms per keyframe (mapper + placerec +
 optimizer, per keyframe the agents made) and what that makes in agents per core at the
 simulated agents' keyframe rate; plus what the mapper shed under overload. The agents
-run in one process of their own session at nice 10 (see shared.runtime.set_priority):
-they stand for robots, and the figure is the server's.
+run in processes of their own session at nice 10, four agents per process (see
+shared.runtime.set_priority and services/agent/sim_cli.py): they stand for robots, and
+the figure is the server's. Each step says how far behind real time the agents fell
+(a step whose agents fell behind offered less load than its count says), the CPU
+their processes used and how long they waited for a core.
 
     .venv/bin/python bench/bench_ramp.py [--counts 1,8,16,24,32] [--seconds 60]
 
@@ -40,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
-from common import mapper_metrics, stack_settings, table, write_report  # noqa: E402
+from common import ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402
@@ -76,17 +79,20 @@ def _holds_over(metrics: dict[str, float], s: float) -> float:
 
 
 def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
-    """py-spy samplers on the server's services for ``seconds`` (collapsed stacks, one
-    file per service; the rate is low so the sampler's own CPU stays small)."""
+    """py-spy samplers on the server's services (and, given as "agents", the simulated
+    agents' processes) for ``seconds`` (collapsed stacks, one file per process; the rate
+    is low so the sampler's own CPU stays small). The agents' processes are sampled with
+    their idle threads too (``--idle``): where an agent waits tells why it falls behind."""
     spy = Path(sys.executable).with_name("py-spy")
     if not spy.exists():
         raise SystemExit("--profile needs py-spy in the venv: .venv/bin/pip install py-spy")
     out.mkdir(parents=True, exist_ok=True)
     return [subprocess.Popen([str(spy), "record", "--pid", str(pids[name]), "--rate", "50",
                               "--nonblocking", "--format", "raw", "--duration",
-                              str(int(seconds)), "--output", str(out / f"{name}.txt")],
+                              str(int(seconds)), "--output", str(out / f"{name}.txt"),
+                              *(["--idle", "--subprocesses"] if name == "agents" else [])],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            for name in SERVER if name in pids]  # fmt: skip
+            for name in (*SERVER, "agents") if name in pids]  # fmt: skip
 
 
 # Leaf frames of a thread that waits (py-spy's idle test is unreliable with
@@ -123,7 +129,9 @@ def top_of(path: Path, n: int = 25) -> str:
     return "\n".join(lines)
 
 
-def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
+def run_step(
+    n: int, seconds: float, profile: Path | None = None, profile_agents: bool = False
+) -> dict:
     stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix="hivemap-ramp-"))
@@ -142,8 +150,13 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         t0 = time.monotonic()
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
-        spies = _profilers(pids, seconds, profile / f"{n}") if profile else []
+        watch = ProcWatch(p.pid)
+        server_watch = {k: ProcWatch(pids[k], 1.0, children=False) for k in SERVER if k in pids}
+        prof = {**pids, "agents": p.pid} if profile_agents else pids
+        spies = _profilers(prof, seconds, profile / f"{n}") if profile else []
         p.wait(seconds * 4 + 300)
+        agents_proc = watch.stop()
+        server_proc = {k: w.stop() for k, w in server_watch.items()}
         for spy in spies:
             spy.wait(60)
         wall = time.monotonic() - t0
@@ -215,6 +228,11 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
             metrics, "hivemap_processing_seconds", 'kind="kf_batch",service="mapper"'
         ),
         "lock_holds_over_200ms": _holds_over(metrics, 0.2),
+        # Full collections of the mapper's garbage collector (every thread stops).
+        "mapper_gc_full": {
+            "count": metrics.get('hivemap_gc_pause_seconds_count{generation="2"}', 0.0),
+            "seconds": metrics.get('hivemap_gc_pause_seconds_sum{generation="2"}', 0.0),
+        },
         # The maps at the end (merged ones report nothing): how many, and their size.
         "maps_at_end": sum(
             1 for k, v in metrics.items() if k.startswith("hivemap_map_keyframes{") and v > 0
@@ -232,6 +250,26 @@ def run_step(n: int, seconds: float, profile: Path | None = None) -> dict:
         },  # fmt: skip
         "wall_s": wall,
         "flight_s": flight,
+        # How far behind real time the simulated agents fell (a run that fell behind
+        # offered less load than its agent count says): flight beyond its nominal
+        # length (the trajectory's duration), worst agent, and the p95 of how late a
+        # frame was stepped (worst agent).
+        "behind_s_max": max(
+            s["flight_s"] - s.get("nominal_flight_s", s["flight_s"]) for s in stats
+        ),
+        "frame_late_p95_ms_max": 1e3 * max(s.get("latency_s_p95", 0.0) for s in stats),
+        # The agents' process: CPU it used (cores over the run) and how long its
+        # threads were ready but waited for a core (seconds per second of run).
+        "agents_process": {
+            "cores": round(agents_proc["cpu_s"] / wall, 3),
+            "runqueue_wait_per_s": round(agents_proc["runqueue_wait_s"] / wall, 3),
+            "threads": agents_proc["threads"],
+            "processes": agents_proc["processes"],
+        },
+        # The same run-queue wait for the server's services: CPU they were denied.
+        "server_runqueue_wait_per_s": {
+            k: round(v["runqueue_wait_s"] / wall, 3) for k, v in server_proc.items()
+        },
         "loadavg_1m_before_after": [load0, load1],
     }
 
@@ -275,6 +313,10 @@ def main() -> int:
     ap.add_argument("--profile", type=Path, default=None,
                     help="py-spy each server service over the flight; collapsed stacks "
                          "under DIR/<agents>/<service>.txt and a summary printed")  # fmt: skip
+    ap.add_argument("--profile-agents", action="store_true",
+                    help="with --profile, the simulated agents' processes too (idle threads "
+                         "included; py-spy on tens of threads takes CPU the agents need: "
+                         "at 16 agents they fell 120 s behind real time)")  # fmt: skip
     args = ap.parse_args()
     ov = args.overload
     args.counts = args.counts or ("8,48" if ov else "1,8,16,24,32")
@@ -283,14 +325,16 @@ def main() -> int:
     rows = []
     for n in (int(x) for x in args.counts.split(",")):
         print(f"{n} agent(s) ...", flush=True)
-        rows.append(run_step(n, args.seconds, args.profile))
+        rows.append(run_step(n, args.seconds, args.profile, args.profile_agents))
         if args.profile:
             for f in sorted((args.profile / str(n)).glob("*.txt")):
                 print(top_of(f), flush=True)
         r = rows[-1]
         print(f"  mapper p95 {r['mapper_p95_ms']:.0f} ms, round trip p95 {r['p95_ms']:.0f} ms, "
               f"{r['kB_per_s_per_agent']:.0f} kB/s/agent, {r['server_cpu_ms_per_kf']:.1f} "
-              f"server CPU ms/kf, cores {r['cpu_cores']}", flush=True)  # fmt: skip
+              f"server CPU ms/kf, cores {r['cpu_cores']}; agents behind real time by "
+              f"{r['behind_s_max']:.1f} s (frames late p95 {r['frame_late_p95_ms_max']:.0f} "
+              f"ms), agents' process {r['agents_process']}", flush=True)  # fmt: skip
     print(
         table(
             rows,

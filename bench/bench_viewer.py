@@ -15,8 +15,10 @@ Writes bench/results/NAME.json, NAME.png (screenshot) and the plots beside them.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -52,6 +54,7 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
     shot = RESULTS / f"{name}.png"
     shot.unlink(missing_ok=True)
     load_before = os.getloadavg()
+    out = Path(tempfile.mkdtemp(prefix="hivemap-viewer-"))
     try:
         sampler = TrafficSampler(mapper)
         with viewer_page(stack.viewer_url, nice=AGENT_NICE) if with_viewer else _no_page() as page:
@@ -59,7 +62,7 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
                 "sim-agents",
                 ["sim-agent", "--id", "agent", "--count", str(n_agents),
                  "--traj", ",".join(SEQUENCES), "--frames", f"0:{int(seconds * 20)}",
-                 "--speed", "1", "--flush-timeout", "20"],
+                 "--speed", "1", "--flush-timeout", "20", "--out", str(out)],
                 {"HIVEMAP_LOG_LEVEL": "WARNING"}, AGENT_NICE,
             )  # fmt: skip
             agents = stack.procs[-1][1]
@@ -92,6 +95,7 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
         trajs = collect(s.redis_url)
     finally:
         stack.stop()
+    stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]
     ids = sorted(
         {k.split('"')[1] for k in m if k.startswith("hivemap_keyframe_latency_seconds_count{")}
     )
@@ -116,6 +120,16 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
         "latency_pass": bool(p95) and max(p95) <= LATENCY_BAR_MS,
         "api_ws_connections": a.get("hivemap_api_ws_connections_total", 0.0),
         "loadavg_1m_before_after": [load_before[0], load_after[0]],
+        # How far behind real time the simulated agents fell (the load offered is below
+        # what 16 real-time agents make when they did): flight beyond the trajectory's
+        # duration and the p95 of how late a frame was stepped, worst agent; and their
+        # keyframes per second (real time: ~2.3 each).
+        "agents_behind_s_max": max((s["flight_s"] - s.get("nominal_flight_s", s["flight_s"])
+                                    for s in stats), default=None),
+        "agents_frame_late_p95_ms_max": max((1e3 * s.get("latency_s_p95", 0.0) for s in stats),
+                                            default=None),
+        "agents_kf_per_s": (sum(s["keyframes"] for s in stats)
+                            / max(sum(s["flight_s"] for s in stats), 1e-9)) if stats else None,
         "traffic": {f"{n_agents} agents": traffic},
         "trajectories": aligned_trajectories(trajs),
         "screenshot": str(shot.relative_to(RESULTS.parents[1])) if with_viewer else None,
@@ -148,7 +162,8 @@ def main() -> int:
     print(f"viewer fps median {r['viewer_fps']['median']}, min {r['viewer_fps']['min']} "
           f"(cap 30), draw {r['viewer_fps']['draw_ms_median']} ms per frame; "
           f"mapper p95 max {r['mapper_p95_max_ms']:.1f} ms (bar {LATENCY_BAR_MS:.0f} ms: "
-          f"{verdict}); load {r['loadavg_1m_before_after']}")  # fmt: skip
+          f"{verdict}); load {r['loadavg_1m_before_after']}; agents behind real time by "
+          f"{r['agents_behind_s_max']} s, {r['agents_kf_per_s']} keyframes/s each")  # fmt: skip
     print(f"written {path}")
     print("plot", traffic_over_time(r["traffic"], path.with_name(f"{name}_traffic.png"),
                                     f"Mapper traffic over time, {args.agents} agents"))  # fmt: skip

@@ -8,6 +8,7 @@ import json
 import os
 import platform
 import subprocess
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -128,3 +129,69 @@ def run_agent(argv: list[str], out: Path, agent: str):
     env = {**os.environ, "HIVEMAP_LOG_LEVEL": "WARNING", "OMP_NUM_THREADS": "1"}
     subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL)
     return agent_stats(out, agent), read_tum(out / f"{agent}_gt.tum")
+
+
+class ProcWatch:
+    """CPU and run-queue wait of a process and its descendants (every thread's, summed),
+    sampled in the background until they exit, so the figures survive the processes:
+    how much CPU the simulated agents got, and how long their threads were ready to
+    run but waited for a core (``/proc/PID/task/*/schedstat``: on-CPU ns, run-queue
+    wait ns, slices)."""
+
+    def __init__(self, pid: int, interval: float = 0.5, children: bool = True) -> None:
+        self.pid = pid
+        self.children = children  # follow child processes (a scan of /proc per sample)
+        self._tasks: dict[tuple[int, str], tuple[int, int]] = {}  # (pid, tid) -> cpu, wait
+        self.pids: set[int] = {pid}
+        self._interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _descendants(self) -> set[int]:
+        parent: dict[int, int] = {}
+        for d in Path("/proc").iterdir():
+            if d.name.isdigit():
+                with contextlib.suppress(OSError, ValueError, IndexError):
+                    parent[int(d.name)] = int(
+                        (d / "stat").read_text().rpartition(")")[2].split()[1]
+                    )
+        out, todo = {self.pid}, [self.pid]
+        while todo:
+            p = todo.pop()
+            kids = [c for c, pp in parent.items() if pp == p and c not in out]
+            out.update(kids)
+            todo.extend(kids)
+        return out
+
+    def _sample(self) -> bool:
+        alive = False
+        if self.children:
+            self.pids |= self._descendants()
+        for pid in self.pids:
+            base = Path(f"/proc/{pid}/task")
+            try:
+                tids = [t.name for t in base.iterdir()]
+            except OSError:
+                continue
+            alive = True
+            for tid in tids:
+                with contextlib.suppress(OSError, ValueError):
+                    run, wait, _ = (base / tid / "schedstat").read_text().split()
+                    self._tasks[(pid, tid)] = (int(run), int(wait))
+        return alive
+
+    def _run(self) -> None:
+        while not self._stop.is_set() and self._sample():
+            self._stop.wait(self._interval)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join(5)
+        self._sample()
+        return {
+            "cpu_s": sum(r for r, _ in self._tasks.values()) * 1e-9,
+            "runqueue_wait_s": sum(w for _, w in self._tasks.values()) * 1e-9,
+            "threads": len(self._tasks),
+            "processes": len(self.pids),
+        }

@@ -43,6 +43,11 @@ def test_meter_reports_rate_drops_traffic_and_acks():
     # They fit a PoseUpdate and survive the wire.
     d = PoseUpdate.decode(_pose("A", **f).encode())
     assert d.resent == 3 and d.ack_p95_s == f["ack_p95_s"]
+    # New acks move the percentiles (they are computed again only when acks came).
+    comm.stats.ack_latencies.extend([0.5] * 20)
+    f2 = m.fields(comm)
+    assert f2["ack_p50_s"] == 0.5 and f2["ack_p95_s"] == 0.5
+    assert m.fields(comm) == f2
 
 
 def test_no_acks_yet_no_latency_fields():

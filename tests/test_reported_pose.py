@@ -83,3 +83,24 @@ def test_recovery_from_a_loss_follows_the_prediction():
     steps = np.linalg.norm(np.diff([T[:3, 3] for T in out], axis=0), axis=1)
     assert steps.max() < 0.02
     assert np.allclose(out[-1][:3, 3], poses[-1][:3, 3], atol=1e-6)
+
+
+def test_skipping_the_turn_while_no_orientation_offset_changes_nothing(monkeypatch):
+    """The turn of each frame (two scipy calls) is computed only while an orientation
+    offset is being paid out; the reported poses are the same bits as computing it
+    always, through a rotated correction taken, paid out and done."""
+    poses = _walk(400)
+    S = Sim3(exp_so3(np.array([0.0, 0.0, 0.05])), np.array([0.0, 0.02, 0.0]), 1.0)
+
+    def fly(rp: ReportedPose) -> list[np.ndarray]:
+        out = [rp.update(T, "ok") for T in poses[:100]]
+        assert any([rp.offer(S) for _ in range(3)])  # repeated: taken after all
+        out += [rp.update(T, "ok") for T in poses[100:]]
+        return out
+
+    fast = ReportedPose()
+    got = fly(fast)
+    assert fast._no_turn_offset()  # paid out to the identity exactly
+    monkeypatch.setattr(ReportedPose, "_no_turn_offset", lambda self: False)
+    want = fly(ReportedPose())
+    assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))

@@ -22,6 +22,9 @@ class HealthMeter:
         self.frames: deque[float] = deque()
         self.frames_dropped = 0
         self.pose_bytes = 0
+        # The ack-latency percentiles of the last ``fields`` call, by how many latencies
+        # there were: poses go out at 10 Hz, acks come at the keyframe rate.
+        self._ack_pct: tuple[int, float, float] | None = None
 
     def frame(self, now: float, due: float | None = None, period: float | None = None) -> None:
         """One frame tracked at ``now``; ``due`` is when the camera took it (monotonic
@@ -52,6 +55,9 @@ class HealthMeter:
             "resent": sum(comm.resent_reasons.values()),
         }
         if lat:
-            p50, p95 = np.percentile(lat, [50, 95])
-            out["ack_p50_s"], out["ack_p95_s"] = round(float(p50), 5), round(float(p95), 5)
+            n = len(s.ack_latencies)
+            if self._ack_pct is None or self._ack_pct[0] != n:
+                p50, p95 = np.percentile(lat, [50, 95])
+                self._ack_pct = (n, round(float(p50), 5), round(float(p95), 5))
+            out["ack_p50_s"], out["ack_p95_s"] = self._ack_pct[1], self._ack_pct[2]
         return out

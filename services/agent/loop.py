@@ -134,6 +134,9 @@ class AgentStats:
     resent: dict = field(default_factory=dict)
     duration_s: float = 0.0
     flight_s: float = 0.0
+    # What the flight takes in real time (first to last frame's stamp, over ``speed``;
+    # 0 unpaced): flight_s beyond it is how far behind real time the agent fell.
+    nominal_flight_s: float = 0.0
     ack_latency_median_s: float = float("nan")
     ack_latency_p95_s: float = float("nan")
     bytes_per_s: float = 0.0
@@ -311,6 +314,8 @@ class AgentLoop:
             self._service(0.0)
         frames.close()
         st.flight_s = time.monotonic() - t_start
+        if clock.stamp0 is not None and clock.last is not None and self.speed > 0:
+            st.nominal_flight_s = (clock.last - clock.stamp0) * 1e-9 / self.speed
         if feedback_dump.enabled() and self.vo_poses:
             feedback_dump.record(self.agent, "vo", stamps=np.array([t for t, _ in self.vo_poses]),
                                  T=np.stack([T for _, T in self.vo_poses]),
@@ -364,10 +369,24 @@ class AgentLoop:
                 self.bus.put(keys.agent_kf(self.agent), data)
                 self.comm.record_sent(len(data))
         if wait > 0:
-            next_send = self.comm.last_send + self.comm.min_interval - time.monotonic()
             with contextlib.suppress(queue.Empty):
-                item = self._ack_q.get(timeout=min(wait, max(next_send, 0.002), 0.02))
+                item = self._ack_q.get(timeout=self._wait_for(wait))
                 self._on_message(item.payload, item.key)
+
+    def _wait_for(self, wait: float) -> float:
+        """How long :meth:`_service` may block for a message: ``wait``, at most 20 ms
+        (timeouts and map chunks are looked at that often), and no longer than until the
+        next batch may go out when one waits only for the rate limit. Nothing waiting, or
+        what waits held back by the window (an ack frees it, and an ack ends the wait),
+        is no reason to wake sooner: waking every 2 ms there cost the simulated agents
+        most of their CPU between frames."""
+        c = self.comm
+        w = min(wait, 0.02)
+        if c.queued_kfs or c.queued_mps or c.kf_updates or c.mp_updates:
+            gap = c.last_send + c.min_interval - time.monotonic()
+            if gap > 0:  # else next_message just said no: the window holds it back
+                w = min(w, max(gap, 0.002))
+        return w
 
     def _drain(self) -> None:
         for q in (self._ack_q, self._map_q):

@@ -30,6 +30,8 @@ import numpy as np
 
 from shared.geometry import Sim3, exp_so3, log_so3
 
+_I3 = np.eye(3)
+
 
 @dataclass
 class GateParams:
@@ -114,10 +116,12 @@ class ReportedPose:
         if was_lost and state == "ok" and T_pred is not None:
             moved = self.S.transform_pose(T_pred)
             self._absorb(moved, T)
-        step = 0.0
+        step = rot = 0.0
         if self._last_T is not None:
             step = float(np.linalg.norm(moved[:3, 3] - self._last_T[:3, 3]))
-            rot = float(np.linalg.norm(log_so3(moved[:3, :3] @ self._last_T[:3, :3].T)))
+            # Only an orientation offset being paid out needs the turn (see _pay).
+            if not self._no_turn_offset():
+                rot = float(np.linalg.norm(log_so3(moved[:3, :3] @ self._last_T[:3, :3].T)))
         if self._last_vo is not None:
             self._path_since += float(np.linalg.norm(T_vo[:3, 3] - self._last_vo[:3, 3]))
         self._last_T, self._last_vo = T, T_vo.copy()
@@ -135,10 +139,17 @@ class ReportedPose:
         n = float(np.linalg.norm(self.offset_t))
         if n > 0:
             self.offset_t = self.offset_t * (max(n - max_t, 0.0) / n)
+        if self._no_turn_offset():
+            return  # log of the identity: nothing to pay (most frames: skip two scipy calls)
         w = log_so3(self.offset_R)
         a = float(np.linalg.norm(w))
         if a > 0:
             self.offset_R = exp_so3(w * (max(a - max_rad, 0.0) / a))
+
+    def _no_turn_offset(self) -> bool:
+        """The orientation offset is exactly the identity (none, or paid out: exp_so3 of
+        a zero vector is the identity exactly)."""
+        return np.array_equal(self.offset_R, _I3)
 
     @property
     def offset(self) -> float:

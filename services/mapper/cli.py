@@ -9,12 +9,21 @@ from shared.settings import Settings
 
 
 def cmd_mapper(args: argparse.Namespace, settings: Settings) -> int:
+    import threading
+
     from shared.runtime import run_service
 
+    from .gcpause import GcWatch, start_freezer
     from .service import GIL_SWITCH_S, MapperService
 
     sys.setswitchinterval(GIL_SWITCH_S)
-    return run_service(MapperService(settings), settings)
+    GcWatch().install()
+    stop = threading.Event()
+    start_freezer(stop)
+    try:
+        return run_service(MapperService(settings), settings)
+    finally:
+        stop.set()
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -18,7 +18,9 @@ Pure function of (map, correction): no transport, no storage.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import chain, islice
 
 import numpy as np
 
@@ -83,27 +85,122 @@ def _anchor(smap: ServerMap, g: int, corrected: dict, memo: dict[int, int | None
     return found
 
 
+@dataclass
+class CorrectionPlan:
+    """The part of a correction that can be worked out off the map's lock: each
+    snapshot keyframe's Sim(3) correction, and the optimized position of every point
+    anchored in the snapshot, from a shallow copy of the map's points. Applying it
+    (:func:`apply_correction` with ``plan``) is then an assignment per point under the
+    lock; what changed meanwhile is caught there (see ``apply_correction``)."""
+
+    snap_kfs: set[int]
+    kf_C: list[tuple[int, np.ndarray, np.ndarray]]  # (gid, corrected pose, C) per snapshot kf
+    objs: list = field(default_factory=list)  # points taking an optimized position ...
+    rows: list = field(default_factory=list)  # ... that position (rows of one array)
+    planned: set[int] = field(default_factory=set)  # their gids
+    rest: list[int] = field(default_factory=list)  # points of the copy that move with a C
+    index: dict[int, int] = field(default_factory=dict)  # corrected point gid -> row
+    new_points: list[int] = field(default_factory=list)  # added since the copy (a journal)
+    mps_missing: int = 0
+
+
+PLAN_SLICE = 20_000  # points per step of a plan between pauses
+
+
+def plan_correction(
+    smap: ServerMap,
+    corr: CorrectionMsg,
+    T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
+    points: dict | None = None,
+    new_points: list[int] | None = None,
+    pause: Callable[[], None] | None = None,
+) -> CorrectionPlan:
+    """What ``corr`` does to ``points`` (a shallow copy of the map's points taken under
+    its lock; default: the live map's, under the caller's lock). ``new_points``: the
+    map's journal of points added since the copy (``ServerMap.record_new_points``),
+    read when the plan is applied. ``pause`` is called between slices of points (the
+    service sleeps there while keyframe batches wait)."""
+    if corr.map_id != smap.map_id:
+        raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
+    kf_C = []
+    for g, T_new, s in zip(corr.kf_gids.tolist(), corr.T_m_kf, corr.kf_scale.tolist(),
+                           strict=True):  # fmt: skip
+        kf = smap.kfs.get(g)
+        T_old = None if kf is None else kf.T_m_kf
+        if T_m_kf_at_snapshot is not None and g in T_m_kf_at_snapshot:
+            T_old = T_m_kf_at_snapshot[g]
+        if T_old is not None:
+            kf_C.append((g, T_new, _sim(T_new, s) @ se3_inv(T_old)))
+    snap = set(corr.kf_gids.tolist())
+    plan = CorrectionPlan(snap, kf_C, new_points=[] if new_points is None else new_points)
+    gids = corr.mp_gids.tolist()
+    index = plan.index = {g: i for i, g in enumerate(gids)}
+    items = iter((smap.mps if points is None else points).items())
+    idx: list[int] = []
+    found = 0
+    objs, rest = plan.objs, plan.rest
+    while True:
+        n = len(objs) + len(rest)
+        for g, mp in islice(items, PLAN_SLICE):
+            i = index.get(g)
+            if i is None:
+                rest.append(g)
+                continue
+            found += 1
+            if mp.ref_kf in snap:
+                objs.append(mp)
+                idx.append(i)
+            else:
+                rest.append(g)
+        if len(objs) + len(rest) - n < PLAN_SLICE:
+            break
+        if pause is not None:
+            pause()
+    pos = np.asarray(corr.mp_pos, np.float64).reshape(-1, 3)
+    plan.rows = list(pos[np.array(idx, np.int64)]) if idx else []
+    plan.planned = {mp.gid for mp in objs}
+    plan.mps_missing = len(gids) - found
+    return plan
+
+
 def apply_correction(
     smap: ServerMap,
     corr: CorrectionMsg,
     T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
+    plan: CorrectionPlan | None = None,
 ) -> AppliedCorrection:
     """Write ``corr`` into ``smap`` (see the module doc). ``T_m_kf_at_snapshot``: the
     poses the correction was computed from, when some changed since the snapshot
     (default: the map's current poses); a keyframe's correction ``C = S' T_snap^-1``
-    is what moves newer keyframes and points anchored to it."""
-    res = AppliedCorrection()
+    is what moves newer keyframes and points anchored to it.
+
+    ``plan``: the correction worked out off the lock (:func:`plan_correction`); without
+    it, it is worked out here. Either way the result is the same: a planned point whose
+    anchor moved out of the snapshot since the plan (its keyframe was culled), and the
+    points added since (the plan's journal), follow the rules below like the rest.
+    The map's lock is held for this call: a half-corrected map would register new
+    keyframes against stale points."""
+    if plan is None:
+        plan = plan_correction(smap, corr, T_m_kf_at_snapshot)
+    res = AppliedCorrection(mps_missing=plan.mps_missing)
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
     # Per snapshot keyframe still in the map: new pose and the Sim(3) correction.
     C: dict[int, np.ndarray] = {}
     new_T: dict[int, np.ndarray] = {}
+    planned_C = {g for g, _, _ in plan.kf_C}
+    for g, T_new, Cg in plan.kf_C:
+        if g not in smap.kfs:
+            continue
+        C[g] = Cg
+        new_T[g] = T_new
+    res.kfs_missing = len(corr.kf_gids) - len(C)
     for g, T_new, s in zip(corr.kf_gids.tolist(), corr.T_m_kf, corr.kf_scale.tolist(),
                            strict=True):  # fmt: skip
         kf = smap.kfs.get(g)
-        if kf is None:
-            res.kfs_missing += 1
-            continue
+        if g in planned_C or kf is None:
+            continue  # a keyframe new since the plan: the default pose
+        res.kfs_missing -= 1
         T_old = kf.T_m_kf
         if T_m_kf_at_snapshot is not None and g in T_m_kf_at_snapshot:
             T_old = T_m_kf_at_snapshot[g]
@@ -127,27 +224,35 @@ def apply_correction(
                     smap.map_id, len(res.kfs_unanchored))  # fmt: skip
 
     # Points: optimized position if anchored in the snapshot, else moved with their ref.
-    # This runs under the map's lock over every point of the map (150k in a big merged
-    # map), so the loop does nothing but look up and assign; rows are views of mp_pos
+    # This runs under the map's lock over every point of the map (300k in a big merged
+    # map), so the loop does nothing but check and assign; rows are views of one array
     # (positions are replaced, never edited in place).
-    snap_kfs = set(corr.kf_gids.tolist())
+    snap_kfs = plan.snap_kfs
     mps = smap.mps
-    pos = np.asarray(corr.mp_pos, np.float64)
-    in_corr = []
-    for i, m in enumerate(corr.mp_gids.tolist()):
-        mp = mps.get(m)
-        if mp is None:
-            res.mps_missing += 1
-        elif mp.ref_kf in snap_kfs:
-            mp.pos = pos[i]
-            in_corr.append(m)
-    res.mps.update(in_corr)
+    moved_off = []
+    for mp, row in zip(plan.objs, plan.rows, strict=True):
+        if mp.ref_kf in snap_kfs:
+            mp.pos = row
+        else:
+            moved_off.append(mp.gid)
+    res.mps = plan.planned  # a plan is applied once
+    res.mps.difference_update(moved_off)
     # The rest move with their reference keyframe's correction, grouped by correction
     # (keyframes carried along share their anchor's) so each group is one matrix
     # product: a 3x3 product per point cost ~0.2 s of lock hold per 100k points.
+    pos = np.asarray(corr.mp_pos, np.float64).reshape(-1, 3)
     groups: dict[int, tuple[np.ndarray, list]] = {}
-    for m in mps.keys() - res.mps:
-        mp = mps[m]
+    seen: set[int] = set()
+    for m in chain(plan.rest, moved_off, plan.new_points):
+        mp = mps.get(m)
+        if mp is None or m in seen or m in res.mps:
+            continue
+        seen.add(m)
+        i = plan.index.get(m)
+        if i is not None and mp.ref_kf in snap_kfs:
+            mp.pos = pos[i]
+            res.mps.add(m)
+            continue
         Cr = C.get(mp.ref_kf)
         if Cr is None:
             # Reference gone or unanchored: any corrected observer will do.

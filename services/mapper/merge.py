@@ -75,7 +75,7 @@ def move_map(target: ServerMap, source: ServerMap, S_t_s: Sim3) -> FusionResult:
         P = S_t_s.apply(np.concatenate([p.pos for p in pts]).reshape(-1, 3))
         for p, row in zip(pts, P, strict=True):
             p.pos = row
-    target.mps.update(source.mps)
+    target.absorb_points(source.mps)
     res.moved_mps.extend(source.mps)
     for g, (anchor, T_a_kf) in source.culled.items():
         T = T_a_kf.copy()

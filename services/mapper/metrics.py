@@ -34,6 +34,12 @@ HANDOVERS = Gauge("hivemap_mapper_handovers", "Maps handed to another mapper for
 FENCED_WRITES = Gauge(
     "hivemap_mapper_fenced_writes", "Writes refused because the map's lease was not ours"
 )
+GC_PAUSE = Histogram(
+    "hivemap_gc_pause_seconds",
+    "Collections of the cyclic garbage collector (every thread stops meanwhile)",
+    ["generation"],
+    buckets=(0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1.0),
+)
 LOCK_HOLD = Histogram(
     "hivemap_map_lock_hold_seconds",
     "How long a map's lock was held at a time (registration, fusion, matches, corrections)",

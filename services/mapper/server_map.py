@@ -70,6 +70,9 @@ class ServerMap:
         # name one as predecessor still register, and trajectories keep it.
         self.culled: dict[int, tuple[int, np.ndarray]] = {}
         self.version = 0  # bumped on every change; optimizers compare it
+        # Gids of points added while a correction is worked out off the map's lock
+        # (see ``record_new_points``).
+        self._journals: list[list[int]] = []
 
     # --- keyframes ------------------------------------------------------------------------
     def add_keyframe(self, kf: ServerKeyframe) -> None:
@@ -206,7 +209,26 @@ class ServerMap:
         if p.gid in self.mps:
             raise KeyError(f"map point {p.gid} already in map {self.map_id}")
         self.mps[p.gid] = p
+        for j in self._journals:
+            j.append(p.gid)
         self.version += 1
+
+    def absorb_points(self, points: dict[int, ServerMapPoint]) -> None:
+        """Take in another map's points (a merge)."""
+        self.mps.update(points)
+        for j in self._journals:
+            j.extend(points)
+
+    def record_new_points(self) -> list[int]:
+        """From now on, the gid of every point added to this map is appended to the list
+        returned, until :meth:`stop_recording` (a correction planned off the map's lock
+        learns from it which points came in meanwhile without a pass over all of them)."""
+        j: list[int] = []
+        self._journals.append(j)
+        return j
+
+    def stop_recording(self, journal: list[int]) -> None:
+        self._journals = [j for j in self._journals if j is not journal]
 
     def fuse(self, keep: int, drop: int) -> None:
         """Merge duplicate point ``drop`` into ``keep`` (observations move over; a
