@@ -228,7 +228,12 @@ class ServerMap:
         return j
 
     def stop_recording(self, journal: list[int]) -> None:
-        self._journals = [j for j in self._journals if j is not journal]
+        # In place, not a rebuilt list: called again off the lock (a correction's
+        # ``finally``), a rebuild could drop a journal another thread began meanwhile.
+        for i, j in enumerate(self._journals):
+            if j is journal:
+                del self._journals[i]
+                return
 
     def fuse(self, keep: int, drop: int) -> None:
         """Merge duplicate point ``drop`` into ``keep`` (observations move over; a
