@@ -17,6 +17,18 @@ from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint
 from shared.geometry import Sim3, exp_so3, se3
 
 
+def _add_kf(m: ServerMap, gid: int, T: np.ndarray, mp: np.ndarray, parent: int) -> None:
+    """Keyframe ``gid`` of agent A at pose ``T`` observing points ``mp``, child of
+    ``parent`` in the spanning tree."""
+    N = len(mp)
+    m.add_keyframe(ServerKeyframe(gid, "A", gid, gid * 1000, T, T, np.zeros((N, 2), np.float32),
+                                  np.zeros((N, 2)), np.zeros(N, np.uint8),
+                                  np.zeros((N, 32), np.uint8), mp))  # fmt: skip
+    m.kfs[m.kfs[gid].parent].children.discard(gid)
+    m.kfs[gid].parent = parent
+    m.kfs[parent].children.add(gid)
+
+
 def _meanwhile(m: ServerMap) -> None:
     """What agents do between a plan and its application: a new keyframe with a new
     point, a point moved by an update (one anchored in the snapshot, one newer), a
@@ -25,13 +37,7 @@ def _meanwhile(m: ServerMap) -> None:
     T = se3(exp_so3([0, 0.1, 0]), [2.0, 0.05, 0])
     m.add_map_point(ServerMapPoint(20_009, np.array([2.0, 0.1, 5.0]), np.zeros(32, np.uint8), 9))
     mp = np.array(old_pts[:20] + [20_009], np.int64)
-    N = len(mp)
-    m.add_keyframe(ServerKeyframe(9, "A", 9, 9000, T, T, np.zeros((N, 2), np.float32),
-                                  np.zeros((N, 2)), np.zeros(N, np.uint8),
-                                  np.zeros((N, 32), np.uint8), mp))  # fmt: skip
-    m.kfs[m.kfs[9].parent].children.discard(9)
-    m.kfs[9].parent = 8
-    m.kfs[8].children.add(9)
+    _add_kf(m, 9, T, mp, parent=8)
     m.mps[old_pts[3]].pos = m.mps[old_pts[3]].pos + 0.5  # replaced, never edited in place
     m.mps[20_008].pos = np.array([1.0, 2.0, 3.0])
     m.remove_keyframe(1)
@@ -58,13 +64,7 @@ def test_plan_off_the_lock_then_apply_equals_applying_at_once():
     T8 = se3(exp_so3([0, 0.16, 0]), [2.4, 0, 0])
     m.add_map_point(ServerMapPoint(20_008, np.array([2.4, 0.0, 5.0]), np.zeros(32, np.uint8), 8))
     mp = np.array(sorted(g for g in m.mps if g < 20_000)[:30] + [lone, 20_008], np.int64)
-    N = len(mp)
-    m.add_keyframe(ServerKeyframe(8, "A", 8, 8000, T8, T8, np.zeros((N, 2), np.float32),
-                                  np.zeros((N, 2)), np.zeros(N, np.uint8),
-                                  np.zeros((N, 32), np.uint8), mp))  # fmt: skip
-    m.kfs[m.kfs[8].parent].children.discard(8)
-    m.kfs[8].parent = 7
-    m.kfs[7].children.add(8)
+    _add_kf(m, 8, T8, mp, parent=7)
     obs = m.mps[lone].obs
     m.mps[lone].obs = {1: obs[1], 8: obs[8]} | obs  # 8 its first observer after 1
     at_once = copy.deepcopy(m)
