@@ -153,14 +153,14 @@ def test_frozen_and_garbage_agent_does_not_delay_the_others(settings, world):
 
 @pytest.mark.slow
 def test_concurrent_writers_keep_map_invariants(settings, world):
-    """Three agents write one map for a minute; a checker verifies the invariants
+    """Three agents write one map for 40 s; a checker verifies the invariants
     under the map's lock throughout."""
     s = settings.model_copy(update={"mapper": settings.mapper.model_copy(
         update={"redundancy": True})})  # fmt: skip
     m = MapperService(s)
     m.start()
     seqs = {"X": ("MH01", 500), "Y": ("MH02", 400), "Z": ("MH03", 300)}
-    gts = {a: gt_part(q, i, i + 1300) for a, (q, i) in seqs.items()}
+    gts = {a: gt_part(q, i, i + 900) for a, (q, i) in seqs.items()}
     T_w_m = gts["X"].poses[0]
     for a, gt in gts.items():
         # Each agent's local frame is its first camera; place all in X's frame.
@@ -174,10 +174,14 @@ def test_concurrent_writers_keep_map_invariants(settings, world):
     def checker():
         nonlocal checks
         while not done.is_set():
+            t = time.monotonic()
             with m.actor("map-shared").lock:
                 violations.extend(smap.check_invariants())
                 checks += 1
-            time.sleep(0.5)
+            # The full check is O(map) and grows to hundreds of ms; holding the lock
+            # for most of the time would starve the writers into overload shedding,
+            # which tests the admission policy rather than the invariants.
+            time.sleep(max(0.5, 4 * (time.monotonic() - t)))
 
     ck = threading.Thread(target=checker)
     ck.start()
@@ -198,12 +202,12 @@ def test_concurrent_writers_keep_map_invariants(settings, world):
         m.stop()
     print(f"\n{elapsed:.0f} s, {checks} invariant checks, {len(smap.kfs)} keyframes, "
           f"{len(smap.mps)} points in the shared map")  # fmt: skip
-    assert elapsed >= 55 and checks >= 30
+    assert elapsed >= 38 and checks >= 20
     assert violations == []
     assert all(r.all_acked for r in results.values())
     assert {k.agent for k in smap.kfs.values()} == set(gts)
-    # The writers really interleaved: each agent's keyframes span the whole minute.
+    # The writers really interleaved: each agent's keyframes span the whole flight.
     for a in gts:
         st = [k.stamp_ns for k in smap.kfs.values() if k.agent == a]
-        assert (max(st) - min(st)) * 1e-9 > 50
+        assert (max(st) - min(st)) * 1e-9 > 35
     assert np.isfinite([k.T_m_kf for k in smap.kfs.values()]).all()
