@@ -88,6 +88,16 @@ class IngestResult:
                     or self.removed_mps)  # fmt: skip
 
 
+class IngestFailed(Exception):
+    """Registration of a batch failed part way. ``partial`` is what it had already
+    changed in the map in memory: that must still be stored, or a resend of the batch
+    (a duplicate by then) would be acknowledged for keyframes Redis never got."""
+
+    def __init__(self, partial: IngestResult) -> None:
+        super().__init__("registration failed part way")
+        self.partial = partial
+
+
 class AgentHandler:
     """One agent's link to its server map: S_m_l, the scale correction and the
     bookkeeping of what arrived."""
@@ -201,13 +211,15 @@ class AgentHandler:
     ) -> IngestResult:
         """Registers ``batch``; ``undistorted``: from :meth:`undistorted`, if computed."""
         self._undistorted = undistorted or {}
+        res = IngestResult()
         try:
-            return self._ingest(batch, now)
+            return self._ingest(batch, now, res)
+        except Exception as e:
+            raise IngestFailed(res) from e
         finally:
             self._undistorted = {}
 
-    def _ingest(self, batch: KeyframeBatch, now: float) -> IngestResult:
-        res = IngestResult()
+    def _ingest(self, batch: KeyframeBatch, now: float, res: IngestResult) -> IngestResult:
         v = batch.sent_ns
         for kf in sorted(batch.new_kfs, key=lambda k: k.id):
             if self.has_kf(kf.id):
@@ -418,6 +430,11 @@ class AgentHandler:
             kf.descriptors, mp_known,
         )  # fmt: skip
         self.smap.add_keyframe(skf)
+        # Recorded as soon as the map has it: a registration that fails after this
+        # point leaves the keyframe in memory, and its partial result is what gets
+        # it stored (see IngestFailed).
+        res.new_kfs.append(g)
+        res.sources[g] = kf
         for j in waiting.tolist():
             if mp[j] not in self.smap.mps:
                 self.waiting_obs.setdefault(int(mp[j]), []).append((g, j))
@@ -425,8 +442,6 @@ class AgentHandler:
         self.latest_kf = max(self.latest_kf, kf.id)
         if self.first_kf < 0:
             self.first_kf = kf.id
-        res.new_kfs.append(g)
-        res.sources[g] = kf
         res.ack_kf_ids.append(kf.id)
         self._attach_ready_mps(res)
         if self.params.fuse:

@@ -81,7 +81,7 @@ from .metrics import (
 from .overload import BACKGROUND, FEEDBACK, LEVELS, POSES, Overload
 from .ownership import Ownership
 from .redundancy import find_redundant
-from .registration import AgentHandler, IngestResult, MapperParams
+from .registration import AgentHandler, IngestFailed, IngestResult, MapperParams
 from .registry import MapRegistry
 from .server_map import ServerMap, digest
 from .sessions import Flights
@@ -484,7 +484,14 @@ class MapperService:
         """Registration of one batch, in memory (``store_and_ack`` writes it out);
         ``undistorted``: its keypoints undistorted ahead (``AgentHandler.undistorted``)."""
         t0 = time.perf_counter()
-        res = h.ingest(batch, time.monotonic(), undistorted)
+        try:
+            res = h.ingest(batch, time.monotonic(), undistorted)
+        except IngestFailed as e:
+            # Not acknowledged; what it did change is written with the agent's next
+            # batch that stores, before that batch's ack (as a failed store's is).
+            if e.partial.changed:
+                self._unstored.setdefault(h.agent, []).append((h, e.partial))
+            raise
         held, missing = h.blocked()
         ack = Ack(batch.agent, h.map_id, np.array(res.ack_kf_ids, np.int64),
                   np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
