@@ -98,7 +98,7 @@ def test_noisy_trajectory_equals_agent_chained_estimate(settings, mapper, world)
 
 def test_twenty_percent_loss_every_keyframe_stored(settings, mapper, world):
     # 2x real time, both runs paced alike so their byte counts compare.
-    gt = gt_part("MH03", 300, 900)
+    gt = gt_part("MH03", 300, 700)
     clean = _run_agent(settings, "C", SimAgent(gt, world, drift=DriftModel.zero(), seed=1),
                        speed=2.0)  # fmt: skip
     lossy_settings = settings.model_copy(update={"inject": InjectSettings(drop=0.2, seed=5)})

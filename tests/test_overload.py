@@ -109,7 +109,7 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
             # what is measured is the server's overload, not theirs.
             agents = subprocess.Popen(
                 [HIVEMAP, "sim-agent", "--id", "ov", "--count", str(AGENTS),
-                 "--traj", "MH01,MH02,MH03", "--frames", "800:1400", "--speed", "2",
+                 "--traj", "MH01,MH02,MH03", "--frames", "800:1200", "--speed", "2",
                  "--flush-timeout", "120", "--out", str(tmp_path)],
                 env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                 preexec_fn=lambda: set_priority(10),
