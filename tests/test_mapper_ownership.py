@@ -87,7 +87,7 @@ def test_three_mappers_share_agents_fail_over_and_fence(settings, tmp_path, worl
         # Three agents on three stretches of MH01, far enough apart not to need a merge
         # (no placerec runs here), started one by one so each goes to the least loaded.
         for i, agent in enumerate("ABC"):
-            c.fly(agent, sim_agent(world, "MH01", slice(300 * i, 300 * i + 1500), seed=40 + i))
+            c.fly(agent, sim_agent(world, "MH01", slice(300 * i, 300 * i + 1000), seed=40 + i))
             assert wait_until(lambda agent=agent: leases.owner_of(f"map-{agent}"), 30), agent
             time.sleep(3 * LEASE_S)  # its load is in the next heartbeats
         owners = {m: leases.owner_of(m)[0] for m in ("map-A", "map-B", "map-C")}
