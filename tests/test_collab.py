@@ -345,6 +345,9 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     assert not ha.smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
     before = estimate_correction(ha)
     # Applied: A is `flown` keyframes past its newest settled one; B has not moved.
+    c.settle_kfs = 0  # off: only loops and merges optimize
+    assert c.mark_unsettled(now) == []
+    c.settle_kfs = settings.mapper.settle_after_kfs
     assert c.mark_unsettled(now) == [map_id]
     assert c.mark_unsettled(now) == []  # marked once
     assert c.due(time.monotonic() + 100.0) == [(map_id, "settle")]
@@ -356,9 +359,3 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     assert np.abs(after.matrix() - before.matrix()).max() > 1e-6  # fitted on newer keyframes
     assert c.mark_unsettled(now) == []
     assert ha.smap.check_invariants() == []
-    # Off (settle_after_kfs 0): only loops and merges optimize.
-    _fly_on(svc, sims, gts, "A", "MH01", 1500, 2000)
-    c.settle_kfs = 0
-    assert c.mark_unsettled(now) == []
-    c.settle_kfs = settings.mapper.settle_after_kfs
-    assert c.mark_unsettled(now) == [map_id]
