@@ -26,10 +26,13 @@ tail is pinned to the map at one end, so an alignment of the whole trajectory ca
 spread it as it spreads the raw VO's drift: even with an exact map (ground truth in
 place of the map's poses, bench/replay_feedback.py --oracle) agent1 of the seed-1 run
 at 85a443d would have reported 7.57 mm against its VO's 7.45.
+Gaps come early too: in the seed-1 pair at 525e4a3 no loop was taken between the
+merge (4 s) and 98 s, and each agent flew 80 keyframes unsettled.
 So the map of an agent that has flown ``settle_after_kfs`` keyframes past its newest
 settled one is optimized again (reason "settle"), spaced like any other request, and
 never while an optimization of that map is still out: a newer copy would abandon it
-at its next stage boundary.
+at its next stage boundary. The seed-1 pair at f1a4bbd: 6 of 18 optimizations were
+settles (5 in the first 90 s), reported 6.76 / 12.52 mm against VO 7.45 / 15.18.
 
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
