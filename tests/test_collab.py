@@ -336,7 +336,7 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
 
     c.request(map_id, "merge")
     settled = ha.latest_kf
-    _fly_on(svc, sims, gts, "A", "MH01", 700, 1500)  # flown during the optimization
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
     flown = ha.latest_kf - settled
     assert flown >= c.settle_kfs, flown
     # Out (requested, not yet applied): a settle request would abandon it.
