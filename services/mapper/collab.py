@@ -31,8 +31,9 @@ merge (4 s) and 98 s, and each agent flew 80 keyframes unsettled.
 So the map of an agent that has flown ``settle_after_kfs`` keyframes past its newest
 settled one is optimized again (reason "settle"), spaced like any other request, and
 never while an optimization of that map is still out: a newer copy would abandon it
-at its next stage boundary. The seed-1 pair at f1a4bbd: 6 of 18 optimizations were
-settles (5 in the first 90 s), reported 6.76 / 12.52 mm against VO 7.45 / 15.18.
+at its next stage boundary. The seed-1 pair at f1a4bbd: 5 of 18 optimizations were
+settles (4 in the first 90 s), reported 6.76 / 12.52 mm against VO 7.45 / 15.18;
+team3 at f1a4bbd: 3 of 19, reported 11.51 / 11.23 / 13.72 against 13.73 / 18.84 / 17.34.
 
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
