@@ -174,6 +174,10 @@ class MapperSettings(BaseModel):
     # At most one map copy to the optimizer per map this often (a burst of matches
     # right after two maps meet becomes one request).
     optimize_min_interval_s: float = Field(3.0, ge=0)
+    # An agent this many keyframes past its newest one a global optimization settled
+    # gets its map optimized again, spaced as above (services/mapper/collab.py: its
+    # frame correction is fitted on settled keyframes only); 0 = only loops and merges.
+    settle_after_kfs: int = Field(20, ge=0)
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.

@@ -298,3 +298,64 @@ def test_keyframes_after_a_correction_continue_at_the_map_scale(redis_url, world
     np.testing.assert_allclose(svc.handlers["A"].scale, s, rtol=1e-6)
     # At the handler's old scale: 5.2 mm (0.96, part of it learned back by refinement).
     assert _joint_rigid_error(svc, gts, "A") < 1e-4
+
+
+def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(redis_url, world):
+    """Optimizations come from loops and merges; once a team has flown its common places
+    over, new loops are ones the map holds already and none comes. An agent that flew
+    settle_after_kfs keyframes past its newest settled one gets its map optimized
+    ("settle"), never while an optimization of the map is still out, and the run
+    settles its newest keyframes, which its frame correction is fitted on."""
+    from services.mapper.feedback import estimate_correction
+
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = {}, {}
+    for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
+        gt = load_euroc_gt(seq)
+        gts[agent] = Trajectory(gt.stamps_ns[0:700], gt.poses[0:700])
+        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel(), seed=10 + i)
+        _feed(svc, agent, sims[agent])
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    ha = svc.handlers["A"]
+    now = time.monotonic()
+    assert c.due(now) == [(map_id, "merge")]
+    # Nothing has been settled yet: no settling either, however far the agents fly.
+    assert c.mark_unsettled(now) == []
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+
+    def run_one() -> None:
+        job = opt.queue.take(block_s=0.1)
+        assert job is not None and job.map_id == map_id
+        corr = opt.handle(job)
+        assert corr is not None and c.on_correction(CorrectionMsg.decode(corr.encode()))
+
+    c.request(map_id, "merge")
+    settled = ha.latest_kf
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
+    flown = ha.latest_kf - settled
+    assert flown >= c.settle_kfs, flown
+    # Out (requested, not yet applied): a settle request would abandon it.
+    assert c.mark_unsettled(now) == [] and c.due(time.monotonic() + 100.0) == []
+    run_one()
+    assert not ha.smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
+    before = estimate_correction(ha)
+    # Applied: A is `flown` keyframes past its newest settled one; B has not moved.
+    c.settle_kfs = 0  # off: only loops and merges optimize
+    assert c.mark_unsettled(now) == []
+    c.settle_kfs = settings.mapper.settle_after_kfs
+    assert c.mark_unsettled(now) == [map_id]
+    assert c.mark_unsettled(now) == []  # marked once
+    assert c.due(time.monotonic() + 100.0) == [(map_id, "settle")]
+    c.request(map_id, "settle")
+    run_one()
+    assert ha.smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
+    after = estimate_correction(ha)
+    assert before is not None and after is not None
+    assert np.abs(after.matrix() - before.matrix()).max() > 1e-6  # fitted on newer keyframes
+    assert c.mark_unsettled(now) == []
+    assert ha.smap.check_invariants() == []

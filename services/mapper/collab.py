@@ -14,6 +14,27 @@ Optimization requests are debounced per map: a burst of matches right after two 
 meet (every new keyframe of both agents re-finds the place) becomes one request with
 all constraints, at most one per ``optimize_min_interval_s``.
 
+Loops and merges are not the only reason to optimize. An agent's keyframes are settled
+(``ServerKeyframe.optimized``) only by a global optimization, and its frame correction
+(services/mapper/feedback.py) is fitted on settled keyframes alone; past the newest
+of them the agent is carried on by its VO. Once a team has flown its common places
+over, place recognition finds only loops the map already holds (``_loop`` drops them),
+and nothing asked for another run: in team5 at ac0c731 agent1's last settled keyframe
+came 39 s before the end of its flight (frame 2854 of 3638), and for those last 20 % of
+the flight its reported pose was its last correction plus the VO's drift since. That
+tail is pinned to the map at one end, so an alignment of the whole trajectory cannot
+spread it as it spreads the raw VO's drift: even with an exact map (ground truth in
+place of the map's poses, bench/replay_feedback.py --oracle) agent1 of the seed-1 run
+at 85a443d would have reported 7.57 mm against its VO's 7.45.
+Gaps come early too: in the seed-1 pair at 525e4a3 no loop was taken between the
+merge (4 s) and 98 s, and each agent flew 80 keyframes unsettled.
+So the map of an agent that has flown ``settle_after_kfs`` keyframes past its newest
+settled one is optimized again (reason "settle"), spaced like any other request, and
+never while an optimization of that map is still out: a newer copy would abandon it
+at its next stage boundary. The seed-1 pair at f1a4bbd: 5 of 18 optimizations were
+settles (4 in the first 90 s), reported 6.76 / 12.52 mm against VO 7.45 / 15.18;
+team3 at f1a4bbd: 3 of 19, reported 11.51 / 11.23 / 13.72 against 13.73 / 18.84 / 17.34.
+
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
 - a map copy for the optimizer is *captured* under the lock (poses and index arrays
@@ -44,6 +65,7 @@ import redis
 from shared import feedback_dump, keys
 from shared.camera import EUROC_FX
 from shared.geometry import Sim3
+from shared.ids import agent_index_of, local_id_of
 from shared.jobs import JobQueue
 from shared.messages import (
     CorrectionMsg,
@@ -115,6 +137,7 @@ class Collaboration:
         optimize_min_interval_s: float = default_of(MapperSettings, "optimize_min_interval_s"),
         opt_share: float = 0.1,
         optimizer_share: float = 0.25,
+        settle_after_kfs: int = default_of(MapperSettings, "settle_after_kfs"),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -151,6 +174,11 @@ class Collaboration:
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
         self._continues: dict[str, int] = {}  # map -> runs asked for to finish a BA
         self.max_continues = 3
+        # Settling (see the module's docstring): 0 = only loops and merges optimize.
+        self.settle_kfs = settle_after_kfs
+        self._settled: dict[str, int] = {}  # agent -> its newest keyframe a correction settled
+        self._inflight: dict[str, float] = {}  # map -> when its request went out (monotonic)
+        self.inflight_timeout_s = 60.0  # a job lost (failed, superseded) is given up after
 
     # --- state --------------------------------------------------------------------------
     def load(self, only: set[str] | None = None) -> None:
@@ -361,6 +389,46 @@ class Collaboration:
             self._dirty[map_id] = "continue"
             OPT_PENDING.set(len(self._dirty))
 
+    def mark_unsettled(self, now: float) -> list[str]:
+        """Marks for a "settle" optimization the maps of agents that have flown
+        ``settle_kfs`` keyframes past their newest settled one (only agents a correction
+        has settled before: a map no loop or merge has optimized yet is not), unless an
+        optimization of the map is out (requested, its correction not yet applied, for
+        less than ``inflight_timeout_s`` or three of its last runs) or already due. The
+        maps marked."""
+        if self.settle_kfs <= 0:
+            return []
+        marked = []
+        for h in list(self.reg.handlers().values()):
+            settled = self._settled.get(h.agent)
+            if settled is None or h.latest_kf - settled < self.settle_kfs:
+                continue
+            map_id = self.reg.resolve(h.map_id)
+            if self.reg.get(map_id) is None:
+                continue  # another mapper's
+            with self._lock:
+                sent = self._inflight.get(map_id)
+                timeout = max(self.inflight_timeout_s, 3.0 * self._run_s.get(map_id, 0.0))
+                if map_id in self._dirty or (sent is not None and now - sent < timeout):
+                    continue
+                self._dirty[map_id] = "settle"
+                OPT_PENDING.set(len(self._dirty))
+            marked.append(map_id)
+        return marked
+
+    def _note_settled(self, map_id: str, kf_gids: np.ndarray) -> None:
+        """The newest keyframe of each agent of ``map_id`` that a correction over
+        ``kf_gids`` (the optimizer's copy) settled. Under the map's lock."""
+        if not len(kf_gids):
+            return
+        idx, local = agent_index_of(kf_gids), local_id_of(kf_gids)
+        for h in self.reg.handlers_of(map_id):
+            mine = local[idx == h.index]
+            if len(mine):
+                newest = int(mine.max())
+                with self._lock:
+                    self._settled[h.agent] = max(newest, self._settled.get(h.agent, -1))
+
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
             out = []
@@ -396,6 +464,7 @@ class Collaboration:
         t2 = time.perf_counter()
         self._last_request[map_id] = time.monotonic()
         with self._lock:
+            self._inflight[map_id] = self._last_request[map_id]
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
             self._snap_poses[(map_id, int(req.version))] = dict(
@@ -465,6 +534,7 @@ class Collaboration:
                         if smap.drop_observation(kg, mg):
                             changed_kfs.add(kg)
                     self._rescale_handlers(smap, c)
+                    self._note_settled(c.map_id, c.kf_gids)
                     pipe = self.pipeline(c.map_id)
                     for h in reg.handlers_of(c.map_id):
                         persist.write_handler(pipe, h)
@@ -473,6 +543,7 @@ class Collaboration:
                 smap.stop_recording(journal)
             self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         with self._lock:
+            self._inflight.pop(c.map_id, None)
             self._corr_s[c.map_id] = time.perf_counter() - t0
             run_s = c.stats.get("seconds")
             if isinstance(run_s, int | float) and np.isfinite(run_s):

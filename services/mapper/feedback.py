@@ -114,8 +114,14 @@ def fit_frame(T_l: np.ndarray, T_m: np.ndarray, settled: np.ndarray) -> Sim3 | N
     44.1 / 37.2); the two-agent seed-1 run 14.6 / 12.9 vs 8.3 / 13.3 (VO 7.5 / 15.2).
     On a synthetic flight with steady drift and an exact map it is the worse choice
     (tests/test_frame_correction.py: 0.44 vs 0.02 of the VO's error left), there g
-    follows the drift as the flight grows. Centres on a line leave the roll about it
-    open: then the orientations fix the rotation (:func:`~shared.geometry.fit_sim3_poses`)."""
+    follows the drift as the flight grows. Fixed once at the agent's first estimate
+    instead (and moved with its map at a merge) it leaves 0.05 of that VO's error there,
+    but replayed on the seed-1 pair it was far worse: 25.2 / 18.1 vs 6.8 / 12.5 mm at
+    f1a4bbd, 11.0 / 13.4 vs 7.1 / 10.3 at 525e4a3, and with the oracle map 7.4 / 23.7 vs
+    7.4 / 11.2 (VO 7.5 / 15.2): the reported pose then goes wherever the short local fit
+    (fit_settled) puts it, while refitted g keeps it near the VO. Centres on a line
+    leave the roll about it open: then the orientations fix the rotation
+    (:func:`~shared.geometry.fit_sim3_poses`)."""
     idx = np.nonzero(np.asarray(settled, bool))[0]
     if len(idx) < MIN_FIT_KFS:
         return None

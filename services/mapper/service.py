@@ -369,7 +369,8 @@ class MapperService:
         # ``store_and_ack``).
         self._unstored: dict[str, list] = {}
         self.collab = Collaboration(self.registry, self.store,
-                                    settings.mapper.optimize_min_interval_s)  # fmt: skip
+                                    settings.mapper.optimize_min_interval_s,
+                                    settle_after_kfs=settings.mapper.settle_after_kfs)  # fmt: skip
         m = settings.mapper
         self.own = Ownership(self.store, m.instance or socket.gethostname(), m.lease_s)
         self.collab.pipeline = self.own.pipeline
@@ -940,7 +941,9 @@ class MapperService:
             if self.level >= BACKGROUND:
                 SHED.labels("optimize").inc()
                 continue  # what is due stays due
-            for map_id, reason in self.collab.due(time.monotonic()):
+            now = time.monotonic()
+            self.collab.mark_unsettled(now)
+            for map_id, reason in self.collab.due(now):
                 try:
                     self.collab.request(map_id, reason)
                 except Exception:
