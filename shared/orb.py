@@ -46,7 +46,11 @@ def as_u64(desc: np.ndarray) -> np.ndarray:
 
 def hamming_u64(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distance between broadcastable (..., 4) uint64 descriptor arrays."""
-    return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=-1, dtype=np.int32)
+    c = np.bitwise_count(np.bitwise_xor(a, b))  # (..., 4) uint8, each at most 64
+    # The four words added by hand: a reduction over an axis of length 4 cost 2.5x as
+    # much as the popcounts (place recognition's vocabulary descent, point fusion).
+    # Pairs first in uint8 (at most 128 each), then the two pairs in int32 (256 fits).
+    return np.add(c[..., 0] + c[..., 1], c[..., 2] + c[..., 3], dtype=np.int32)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

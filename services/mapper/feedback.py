@@ -7,11 +7,13 @@ its pose, which keeps the down-link small.
 
 from __future__ import annotations
 
+from operator import attrgetter
+
 import numpy as np
 
 from shared import feedback_dump
 from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
-from shared.ids import agent_index_of, local_id_of
+from shared.ids import agent_index_of, local_id_of, present_in
 from shared.messages import MapChunk
 
 from .correction_history import CorrectionHistory
@@ -47,6 +49,8 @@ LINE_RATIO = 0.03  # centres this much narrower across than along lie on a line
 SCALE_FIT_KFS = 20
 SCALE_FIT_SPREAD = 0.2
 SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
+_pos = attrgetter("pos")
+_desc = attrgetter("descriptor")
 
 
 def anchor_count(
@@ -334,14 +338,14 @@ def build_chunk(
     uniq, first = np.unique(allmp, return_index=True)
     mine = [smap.kfs[g].mp for g in range(lo, hi + 1) if g in smap.kfs]
     if mine:
-        keep = ~np.isin(uniq, np.concatenate(mine))
+        keep = ~present_in(uniq, np.concatenate(mine))
         uniq, first = uniq[keep], first[keep]
     order = np.argsort(first, kind="stable")
     mp_gids = uniq[order]
     rank = np.empty(len(uniq), np.int64)
     rank[order] = np.arange(len(uniq))
-    pts = [smap.mps[g] for g in mp_gids.tolist()]
-    pos = np.concatenate([p.pos for p in pts]).reshape(-1, 3) if pts else np.zeros((0, 3))
+    pts = list(map(smap.mps.__getitem__, mp_gids.tolist()))
+    pos = np.concatenate(list(map(_pos, pts))).reshape(-1, 3) if pts else np.zeros((0, 3))
     p_ref = s_a * pos @ R_a.T + t_a
     kp, desc, idx = [], [], []
     for kf in kfs:
@@ -373,7 +377,7 @@ def build_chunk(
         mp_agents=mp_agents,
         mp_ids=local_id_of(mp_gids),
         p_ref=p_ref.astype(np.float64),
-        mp_descriptors=(np.concatenate([p.descriptor for p in pts]) if pts
+        mp_descriptors=(np.concatenate(list(map(_desc, pts))) if pts
                         else np.zeros(0, np.uint8)).astype(np.uint8).reshape(-1, 32),
         sent_ns=now_ns, S_g_l=S_g_l,
     )  # fmt: skip

@@ -10,13 +10,19 @@ local map, or two agents mapped it).
 
 from __future__ import annotations
 
+from operator import attrgetter
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.camera import PinholeRadTan
+from shared.ids import present_in, unique_ids
 from shared.orb import hamming
 
 from .server_map import ServerKeyframe, ServerMap
+
+_pos = attrgetter("pos")
+_desc = attrgetter("descriptor")
 
 
 def fuse_by_projection(
@@ -38,12 +44,13 @@ def fuse_by_projection(
     # Candidates: the neighbours' points this keyframe does not observe yet (sorted),
     # gathered with numpy; this runs for every keyframe, so Python loops stay per point.
     nb = np.concatenate([smap.kfs[n].mp for n in neigh])
-    cand = np.setdiff1d(nb[nb >= 0], kf.mp[kf.mp >= 0])
+    cand = unique_ids(nb[nb >= 0])
+    cand = cand[~present_in(cand, kf.mp)]  # sorted, as np.setdiff1d gives them
     if len(cand) == 0:
         return 0, changed, removed, aliases
-    mps = smap.mps
-    pts = [mps[g] for g in cand.tolist()]
-    P = np.concatenate([p.pos for p in pts]).reshape(-1, 3)
+    # map/attrgetter: the per-candidate lookups at C speed (thousands per keyframe).
+    pts = list(map(smap.mps.__getitem__, cand.tolist()))
+    P = np.concatenate(list(map(_pos, pts))).reshape(-1, 3)
     R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
     X_c = (P - t) @ R
     uv, ok = cam.project(X_c, min_depth=0.1)
@@ -61,7 +68,8 @@ def fuse_by_projection(
         return 0, changed, removed, aliases
     cand, idx, valid = cand[reach], idx[reach], valid[reach]
     idx_safe = np.where(valid, idx, 0)
-    desc_c = np.concatenate([pts[i].descriptor for i in ok_idx[reach].tolist()]).reshape(-1, 32)
+    near = list(map(pts.__getitem__, ok_idx[reach].tolist()))
+    desc_c = np.concatenate(list(map(_desc, near))).reshape(-1, 32)
     desc_c = desc_c.astype(np.uint8, copy=False)
     hd = hamming(kf.descriptors[idx_safe], desc_c[:, None, :])
     hd = np.where(valid, hd, 1 << 20)

@@ -57,9 +57,16 @@ def refine_pose(
     K = np.eye(3)
     obj = np.ascontiguousarray(P_m, dtype=np.float64)
     img = np.ascontiguousarray(xy, dtype=np.float64)
+    used = None
     for _ in range(3):
         if inl.sum() < min_inliers:
             break
+        if used is not None and np.array_equal(inl, used):
+            # The same inliers as the last solve, which started from a pose no better
+            # than the one it returned: another solve would return that pose again (a
+            # third of the map actor's pose-refinement time, bench_ramp --profile).
+            break
+        used = inl
         ok, rvec, tvec = cv2.solvePnP(
             obj[inl], img[inl], K, None, rvec, tvec,
             useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,

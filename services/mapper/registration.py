@@ -32,7 +32,7 @@ import numpy as np
 
 from shared.camera import PinholeRadTan
 from shared.geometry import Sim3, scale_translation, se3_inv, transform_points
-from shared.ids import gid, local_id_of
+from shared.ids import gid, in_sorted, local_id_of
 from shared.messages import KeyframeBatch, KeyframeUpdate, MapPoints, NewKeyframe
 from shared.settings import MapperSettings, default_of
 
@@ -378,7 +378,12 @@ class AgentHandler:
 
     def _insert(self, kf: NewKeyframe, T_init: np.ndarray, res: IngestResult) -> None:
         if kf.calib is not None:
-            self.camera = PinholeRadTan.from_array(kf.calib)
+            cam = PinholeRadTan.from_array(kf.calib)
+            if cam != self.camera:
+                # Replaced only when it differs: the camera caches what it derives from
+                # its parameters (the distortion's valid radius, an np.roots per
+                # projection of point fusion when the camera was new for every keyframe).
+                self.camera = cam
         cam = self.camera
         g = self.kf_gid(kf.id)
         pre = self._undistorted.get(kf.id)
@@ -422,7 +427,7 @@ class AgentHandler:
         own = [i for i, v in self.pending_mps.items() if v[0] == kf.id]
         created = set(self._create_mps(kf.id, own, T, g, res)) if own else set()
         if created:
-            known |= np.isin(mp, np.fromiter(created, np.int64, len(created))) & has
+            known |= in_sorted(mp, np.sort(np.fromiter(created, np.int64, len(created)))) & has
         waiting = np.nonzero(has & ~known)[0]
         mp_known = np.where(known, mp, -1)
         skf = ServerKeyframe(

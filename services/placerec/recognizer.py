@@ -173,17 +173,20 @@ class PlaceRecognizer:
         if not query:
             pass
         elif not resting and len(self.kfs) > 0:
+            # ORB-SLAM's minimum score (the query's lowest score against its covisible
+            # keyframes), the same for both queries: computed once.
+            min_score = self.db.min_neighbour_score(kd.bow, neighbours)
             others = [m for m in self.db.maps() if m != map_id]
             if others:
                 cands = self.db.query(kd.bow, neighbours, self.covisible, query_gid=g,
-                                      exclude_maps=[map_id])  # fmt: skip
+                                      exclude_maps=[map_id], min_score=min_score)  # fmt: skip
                 acc = self._checker(ev.agent, "merge").update([c.gid for c in cands],
                                                               self.covisible)  # fmt: skip
                 queries.append(acc)
             recent = [gg for i, gg in self.by_agent.get(ev.agent, [])
                       if abs(i - int(ev.kf_id)) < self.p.loop_min_id_gap]  # fmt: skip
             cands = self.db.query(kd.bow, neighbours, self.covisible, query_gid=g,
-                                  exclude=recent, maps=[map_id])  # fmt: skip
+                                  exclude=recent, maps=[map_id], min_score=min_score)  # fmt: skip
             acc = self._checker(ev.agent, "loop").update([c.gid for c in cands], self.covisible)
             queries.append(acc)
         elif resting:
@@ -201,11 +204,12 @@ class PlaceRecognizer:
                 if c not in self.kfs:
                     continue
                 timing.verified += 1
-                res = verify(kd, self.kfs[c].data, self.neighbourhood(c), self.p.verify)
+                nb = self.neighbourhood(c)
+                res = verify(kd, self.kfs[c].data, nb, self.p.verify)
                 if not res.accepted:
                     log.debug("candidate %d for %d rejected: %s", c, g, res.reason)
                     continue
-                checked, confirmed = self.confirm_in_neighbours(g, res.S_q_c, c)
+                checked, confirmed = self.confirm_in_neighbours(g, res.S_q_c, c, nb)
                 if confirmed < min(self.p.confirm_min, checked):
                     log.info("candidate %d for %d: Sim(3) holds in %d of %d neighbours of the "
                              "query; rejected", c, g, confirmed, checked)  # fmt: skip
@@ -227,11 +231,14 @@ class PlaceRecognizer:
         self.last = timing
         return out
 
-    def confirm_in_neighbours(self, q: int, S_q_c: np.ndarray, c: int) -> tuple[int, int]:
+    def confirm_in_neighbours(
+        self, q: int, S_q_c: np.ndarray, c: int, nb: MapPoints | None = None
+    ) -> tuple[int, int]:
         """(neighbours checked, neighbours where the candidate's points projected
-        through S_q_c and the neighbour's pose relative to q find enough matches)."""
+        through S_q_c and the neighbour's pose relative to q find enough matches);
+        ``nb``: ``neighbourhood(c)`` when the caller has it already."""
         kq = self.kfs[q]
-        nb = self.neighbourhood(c)
+        nb = self.neighbourhood(c) if nb is None else nb
         if len(nb) == 0:
             return 0, 0
         P_q = nb.p_c @ (S_q_c[:3, :3]).T + S_q_c[:3, 3]

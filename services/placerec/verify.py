@@ -244,19 +244,34 @@ def match_projected(
             scale_factor
         )
         radius = radius_px * scale_factor ** np.clip(np.round(lvl), 0, 7)
+    rmax = float(radius.max())
+    # Only points in front whose projection falls within reach of some keypoint (the
+    # keypoints' bounding box grown by the largest radius) can match: the rest are left
+    # out of the k-d tree query and, of the k neighbours found, descriptors are compared
+    # only where a keypoint is within the point's radius (most slots have none). The
+    # result is the same as comparing all of them (bench_ramp --profile: this function
+    # was a quarter of place recognition's CPU).
+    lo, hi = kp.min(axis=0) - rmax, kp.max(axis=0) + rmax
+    near = np.nonzero(front & (uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0])
+                      & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1]))[0]  # fmt: skip
+    if len(near) == 0:
+        return e, e, e
     kk = min(k, len(cand))
-    dist, idx = cKDTree(kp).query(uv, k=kk, distance_upper_bound=float(radius.max()))
+    dist, idx = cKDTree(kp).query(uv[near], k=kk, distance_upper_bound=rmax)
     if kk == 1:
         dist, idx = dist[:, None], idx[:, None]
-    valid = (idx < len(cand)) & (dist <= radius[:, None]) & front[:, None]
-    kidx = cand[np.where(valid, idx, 0)]
-    hd = hamming_u64(as_u64(target.descriptors)[kidx], as_u64(desc)[:, None, :])
-    hd = np.where(valid, hd, _BIG)
+    valid = (idx < len(cand)) & (dist <= radius[near, None])
+    vi, vj = np.nonzero(valid)
+    hd = np.full(valid.shape, _BIG, np.int64)
+    hd[vi, vj] = hamming_u64(as_u64(target.descriptors)[cand[idx[vi, vj]]],
+                             as_u64(desc)[near[vi]])  # fmt: skip
     j = hd.argmin(axis=1)
-    best = hd[np.arange(len(P)), j]
+    best = hd[np.arange(len(near)), j]
     ok = np.nonzero(best <= max_hamming)[0]
-    pi, ki = _one_per_target(ok, kidx[ok, j[ok]], best[ok])
-    return pi, ki, best[pi]
+    pi, ki = _one_per_target(near[ok], cand[idx[ok, j[ok]]], best[ok])
+    best_of = np.full(len(P), _BIG, np.int64)
+    best_of[near] = best
+    return pi, ki, best_of[pi]
 
 
 def _guided_kf_matches(
