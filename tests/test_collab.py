@@ -163,17 +163,24 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     assert _joint_rigid_error(svc, gts, "AB") < 1e-6
 
 
-def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
-    """Merge two noisy agents, ask for an optimization, run it, apply the correction:
-    invariants hold, Redis follows, and the joint error does not grow."""
-    settings = Settings(redis_url=redis_url)
-    svc = MapperService(settings)
+def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
+    """Agents A (MH01) and B (MH02), 700 frames each with drift, fed to ``svc``:
+    (ground truths, simulated agents) by agent."""
     gts, sims = {}, {}
     for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
         gt = load_euroc_gt(seq)
         gts[agent] = Trajectory(gt.stamps_ns[0:700], gt.poses[0:700])
         sims[agent] = SimAgent(gts[agent], world, drift=DriftModel(), seed=10 + i)
         _feed(svc, agent, sims[agent])
+    return gts, sims
+
+
+def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
+    """Merge two noisy agents, ask for an optimization, run it, apply the correction:
+    invariants hold, Redis follows, and the joint error does not grow."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    gts, sims = _two_noisy_agents(svc, world)
     assert svc.collab.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
     map_id = svc.handlers["A"].map_id
     before = _joint_rigid_error(svc, gts, "AB")
@@ -312,12 +319,7 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     svc = MapperService(settings)
     c = svc.collab
     c.min_interval = 0.0
-    gts, sims = {}, {}
-    for i, (agent, seq) in enumerate((("A", "MH01"), ("B", "MH02"))):
-        gt = load_euroc_gt(seq)
-        gts[agent] = Trajectory(gt.stamps_ns[0:700], gt.poses[0:700])
-        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel(), seed=10 + i)
-        _feed(svc, agent, sims[agent])
+    gts, sims = _two_noisy_agents(svc, world)
     assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
     map_id = svc.handlers["A"].map_id
     ha = svc.handlers["A"]
