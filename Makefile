@@ -44,8 +44,12 @@ system-tools:
 dashboards: $(STAMP)
 	$(BIN)/hivemap dashboards
 
+# Two phases (tests/conftest.py says which tests are "serial" and why): the rest on two
+# xdist workers, then the serial ones alone; both run even if the first fails.
 test: $(STAMP) system-tools
-	$(BIN)/pytest -q --durations=25
+	@$(BIN)/pytest -q -n 2 -m "not serial" --durations=15; a=$$?; \
+	$(BIN)/pytest -q -m serial --durations=15; b=$$?; \
+	if [ $$a -ne 0 ] || [ $$b -ne 0 ]; then exit 1; fi
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

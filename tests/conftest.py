@@ -12,6 +12,30 @@ from shared.settings import Settings, ZenohSettings
 # Determinism and fairness on 2-core machines: numeric libs use one thread each.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+# `make test` runs the suite in two phases: everything not marked "serial" on two
+# pytest-xdist workers (most tests wait on sockets and subprocesses more than they
+# compute: a one-worker suite used 83 % of one core), then the "serial" tests alone.
+# Serial are the live stacks whose assertions are about time (latency percentiles,
+# drain and restart deadlines, frames per second), which two workers would halve.
+SERIAL_MODULES = {
+    "test_compose",
+    "test_overload",
+    "test_mapper_service",
+    "test_mapper_ownership",
+    "test_viewer",
+    "test_supervised_up",
+    "test_e2e_mapper",
+    "test_gcpause",
+    "test_prometheus",
+    "test_lossy_link",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.module.__name__.rpartition(".")[2] in SERIAL_MODULES:
+            item.add_marker(pytest.mark.serial)
+
 
 @pytest.fixture(scope="session")
 def redis_server():
