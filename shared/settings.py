@@ -178,6 +178,12 @@ class MapperSettings(BaseModel):
     # gets its map optimized again, spaced as above (services/mapper/collab.py: its
     # frame correction is fitted on settled keyframes only); 0 = only loops and merges.
     settle_after_kfs: int = Field(20, ge=0)
+    # Settling without a global optimization: an agent this many keyframes past its newest
+    # settled one gets a windowed BA instead ("local": the map's unsettled keyframes free,
+    # every other keyframe that sees their points fixed; services/mapper/capture.py
+    # capture_window), spaced by its own cost, not the global BA's; 0 = settle through
+    # global optimizations (settle_after_kfs).
+    settle_window_kfs: int = Field(8, ge=0)
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.
@@ -209,6 +215,8 @@ class OptimizerSettings(BaseModel):
     ba: bool = True
     ba_max_iterations: int = Field(10, ge=0)
     ba_time_budget_s: float = Field(8.0, gt=0)
+    # The same for a windowed BA (reason "local": a few dozen keyframes).
+    local_ba_time_budget_s: float = Field(2.0, gt=0)
     # A newer copy of a map restarts its optimization at most this many times in a
     # row; then the run finishes (and the newest copy runs next), so a stream of loops
     # can't starve the map of corrections.

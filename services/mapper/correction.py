@@ -168,6 +168,7 @@ def apply_correction(
     corr: CorrectionMsg,
     T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
     plan: CorrectionPlan | None = None,
+    keep: set[int] | None = None,
 ) -> AppliedCorrection:
     """Write ``corr`` into ``smap`` (see the module doc). ``T_m_kf_at_snapshot``: the
     poses the correction was computed from, when some changed since the snapshot
@@ -179,7 +180,11 @@ def apply_correction(
     anchor moved out of the snapshot since the plan (its keyframe was culled), and the
     points added since (the plan's journal), follow the rules below like the rest.
     The map's lock is held for this call: a half-corrected map would register new
-    keyframes against stale points."""
+    keyframes against stale points.
+
+    ``keep``: keyframes a windowed copy left out (services/mapper/capture.py
+    capture_window): they, and the points anchored to them, stay as they are; only
+    keyframes that arrived since the copy follow an anchor."""
     if plan is None:
         plan = plan_correction(smap, corr, T_m_kf_at_snapshot)
     res = AppliedCorrection(mps_missing=plan.mps_missing)
@@ -210,7 +215,7 @@ def apply_correction(
     # before any pose is overwritten.
     memo: dict[int, int | None] = {}
     for g, kf in smap.kfs.items():
-        if g in C:
+        if g in C or (keep is not None and g in keep):
             continue
         a = _anchor(smap, g, C, memo)
         if a is None:
@@ -254,6 +259,8 @@ def apply_correction(
             res.mps.add(m)
             continue
         Cr = C.get(mp.ref_kf)
+        if Cr is None and keep is not None and mp.ref_kf in keep:
+            continue  # outside the window
         if Cr is None:
             # Reference gone or unanchored: any corrected observer will do.
             Cr = next((C[o] for o in mp.obs if o in C), None)
