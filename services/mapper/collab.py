@@ -575,7 +575,8 @@ class Collaboration:
                 # Between slices it sleeps while batches wait, at most 0.1 s a slice (a
                 # second in all for 200k points): the corrected map is not held back long.
                 plan = plan_correction(smap, c, snap_poses, points, journal,
-                                       pause=lambda: reg.wait_for_batches(0.1))  # fmt: skip
+                                       pause=lambda: reg.wait_for_batches(0.1),
+                                       keep=keep if local else None)  # fmt: skip
                 del points
                 reg.wait_for_batches()
                 with reg.lock(c.map_id):

@@ -114,12 +114,16 @@ def plan_correction(
     points: dict | None = None,
     new_points: list[int] | None = None,
     pause: Callable[[], None] | None = None,
+    keep: set[int] | None = None,
 ) -> CorrectionPlan:
     """What ``corr`` does to ``points`` (a shallow copy of the map's points taken under
     its lock; default: the live map's, under the caller's lock). ``new_points``: the
     map's journal of points added since the copy (``ServerMap.record_new_points``),
     read when the plan is applied. ``pause`` is called between slices of points (the
-    service sleeps there while keyframe batches wait)."""
+    service sleeps there while keyframe batches wait). ``keep``: as for
+    :func:`apply_correction`; points outside the correction anchored to those are left
+    out of the plan (a windowed correction then touches only its window's points under
+    the lock, not every point of the map)."""
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
     kf_C = []
@@ -144,7 +148,8 @@ def plan_correction(
         for g, mp in islice(items, PLAN_SLICE):
             i = index.get(g)
             if i is None:
-                rest.append(g)
+                if keep is None or mp.ref_kf not in keep:
+                    rest.append(g)
                 continue
             found += 1
             if mp.ref_kf in snap:
@@ -186,7 +191,7 @@ def apply_correction(
     capture_window): they, and the points anchored to them, stay as they are; only
     keyframes that arrived since the copy follow an anchor."""
     if plan is None:
-        plan = plan_correction(smap, corr, T_m_kf_at_snapshot)
+        plan = plan_correction(smap, corr, T_m_kf_at_snapshot, keep=keep)
     res = AppliedCorrection(mps_missing=plan.mps_missing)
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
