@@ -174,10 +174,19 @@ class MapperSettings(BaseModel):
     # At most one map copy to the optimizer per map this often (a burst of matches
     # right after two maps meet becomes one request).
     optimize_min_interval_s: float = Field(3.0, ge=0)
-    # An agent this many keyframes past its newest one a global optimization settled
-    # gets its map optimized again, spaced as above (services/mapper/collab.py: its
-    # frame correction is fitted on settled keyframes only); 0 = only loops and merges.
+    # With settle_window_kfs 0: an agent this many keyframes past its newest one a global
+    # optimization settled gets its map optimized again, spaced as above
+    # (services/mapper/collab.py: its frame correction is fitted on settled keyframes
+    # only); 0 = only loops and merges.
     settle_after_kfs: int = Field(20, ge=0)
+    # Settling without a global optimization: an agent this many keyframes past its newest
+    # settled one gets a windowed BA instead ("local": the map's newest unsettled keyframes
+    # free, the keyframes sharing most of their points fixed; services/mapper/capture.py
+    # capture_window), spaced by its own run time, not the global BA's; 0 = settle through
+    # global optimizations (settle_after_kfs). At 457dcb8 (bench/results/*_fb3_457dcb8*):
+    # reported-pose ATE summed over the team -24.1 / -11.2 % (seed-1 pair, two runs),
+    # -33.5 % (team3), -23.6 % (team5) against the raw VO, every agent at or below its VO.
+    settle_window_kfs: int = Field(8, ge=0)
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.
@@ -209,6 +218,8 @@ class OptimizerSettings(BaseModel):
     ba: bool = True
     ba_max_iterations: int = Field(10, ge=0)
     ba_time_budget_s: float = Field(8.0, gt=0)
+    # The same for a windowed BA (reason "local": a few dozen keyframes).
+    local_ba_time_budget_s: float = Field(2.0, gt=0)
     # A newer copy of a map restarts its optimization at most this many times in a
     # row; then the run finishes (and the newest copy runs next), so a stream of loops
     # can't starve the map of corrections.

@@ -319,6 +319,7 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     svc = MapperService(settings)
     c = svc.collab
     c.min_interval = 0.0
+    c.settle_window_kfs = 0  # settling by global runs (windowed BA: the next test)
     gts, sims = _two_noisy_agents(svc, world)
     assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
     map_id = svc.handlers["A"].map_id
@@ -361,3 +362,92 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     assert np.abs(after.matrix() - before.matrix()).max() > 1e-6  # fitted on newer keyframes
     assert c.mark_unsettled(now) == []
     assert ha.smap.check_invariants() == []
+
+
+def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(redis_url, world):
+    """Settling without a global optimization (reason "local"): an agent
+    settle_window_kfs keyframes past its newest settled one gets a windowed BA -- the
+    map's unsettled keyframes free, the settled ones that see their points fixed. The
+    copy is a small part of the map, keyframes outside it and their points do not move,
+    the window's keyframes come out settled (its newest is what the frame correction is
+    fitted on) and no further from the truth than registration had put them; it is
+    spaced by its own run time, not the global BA's."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    ha = svc.handlers["A"]
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+
+    def run_one():
+        job = opt.queue.take(block_s=0.1)
+        assert job is not None and job.map_id == map_id
+        corr = opt.handle(job)
+        assert corr is not None and c.on_correction(CorrectionMsg.decode(corr.encode()))
+        return corr
+
+    assert c.due(time.monotonic()) == [(map_id, "merge")]
+    c.request(map_id, "merge")
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
+    glob = run_one()
+    smap = ha.smap
+    unsettled = {g for g, k in smap.kfs.items() if not k.optimized}
+    assert unsettled and ha.kf_gid(ha.latest_kf) in unsettled
+    outside = {g: k.T_m_kf.copy() for g, k in smap.kfs.items()}
+    pts = {g: p.pos.copy() for g, p in smap.mps.items()}
+
+    def err_of(gids) -> float:
+        """RMS position error of A's keyframes ``gids`` after a similarity alignment of
+        all of A's keyframes to the truth."""
+        from shared.geometry import umeyama
+
+        tr = _traj(svc, "A")
+        G = gts["A"].positions[np.searchsorted(gts["A"].stamps_ns, tr.stamps_ns)]
+        S = umeyama(tr.positions, G)
+        ids = {smap.kfs[g].stamp_ns for g in gids if smap.kfs[g].agent == "A"}
+        sel = np.array([s in ids for s in tr.stamps_ns])
+        return float(np.sqrt((np.linalg.norm(S.apply(tr.positions) - G, axis=1)[sel] ** 2).mean()))
+
+    before = err_of(unsettled)
+    now = time.monotonic()
+    assert c.mark_unsettled(now) == [map_id]
+    assert c.due(time.monotonic() + 100.0) == [(map_id, "local")]
+    req = c.request(map_id, "local")
+    assert req is not None and not len(req.loops)
+    window = set(req.kf_gids.tolist())
+    free = window - set(req.fixed_gids.tolist())
+    assert free == unsettled or (len(free) == 60 and free <= unsettled), (len(free), len(unsettled))
+    assert 2 <= len(req.fixed_gids) <= 60 and len(window) < len(smap.kfs), (
+        len(window),
+        len(smap.kfs),
+    )
+    # Out: no second copy, local or global settle.
+    assert c.mark_unsettled(now) == []
+    corr = run_one()
+    assert corr.stats["reason"] == "local"
+    assert corr.stats["seconds"] < glob.stats["seconds"], (corr.stats, glob.stats)
+    # Outside the window nothing moved, nor the points anchored there.
+    for g, T in outside.items():
+        if g not in window:
+            np.testing.assert_array_equal(smap.kfs[g].T_m_kf, T)
+    for g, p in smap.mps.items():
+        if g in pts and p.ref_kf not in window:
+            np.testing.assert_array_equal(p.pos, pts[g])
+    assert smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
+    assert all(smap.kfs[g].optimized for g in free)
+    after = err_of(unsettled)
+    assert after < 0.5 * before, (before, after)  # 9.1 -> 2.0 (units of the VO)
+    assert c._settled["A"] == ha.latest_kf
+    assert smap.check_invariants() == []
+    # Spaced by its own run time (far shorter than the global BA's).
+    assert c._local_run_s[map_id] == corr.stats["seconds"]
+    assert c._run_s[map_id] == glob.stats["seconds"]
+    print(
+        f"window {len(window)} of {len(smap.kfs)} kfs, free {len(free)}, "
+        f"{corr.stats['seconds']:.2f} s vs global {glob.stats['seconds']:.2f} s; "
+        f"unsettled error {1e3 * before:.3f} -> {1e3 * after:.3f} milli-units"
+    )

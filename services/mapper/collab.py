@@ -34,6 +34,14 @@ never while an optimization of that map is still out: a newer copy would abandon
 at its next stage boundary. The seed-1 pair at f1a4bbd: 5 of 18 optimizations were
 settles (4 in the first 90 s), reported 6.76 / 12.52 mm against VO 7.45 / 15.18;
 team3 at f1a4bbd: 3 of 19, reported 11.51 / 11.23 / 13.72 against 13.73 / 18.84 / 17.34.
+Global runs cannot settle often enough on a big map: in team5 at f1a4bbd global BA took
+16-35 s and requests were spaced up to 140 s (run time over ``optimizer_share``), only
+1 of 16 runs was a settle, and agent1's reported pose went stale over the last 30 % of
+its flight (15.16 mm against its VO's 13.73). So by default (``settle_window_kfs`` > 0)
+settling is a windowed BA instead (reason "local"; capture.py ``capture_window``): the
+map's unsettled keyframes free, the keyframes that see most of their points fixed, after
+``settle_window_kfs`` keyframes, spaced by its own run time; its correction moves the
+window and the keyframes that arrived since, nothing else (apply_correction ``keep``).
 
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
@@ -81,7 +89,7 @@ from shared.store import Store
 from shared.transport import Bus
 
 from . import persist
-from .capture import build_request, capture_map
+from .capture import build_request, capture_map, capture_window
 from .correction import apply_correction, plan_correction
 from .feedback import settled_scale
 from .merge import (
@@ -138,6 +146,7 @@ class Collaboration:
         opt_share: float = 0.1,
         optimizer_share: float = 0.25,
         settle_after_kfs: int = default_of(MapperSettings, "settle_after_kfs"),
+        settle_window_kfs: int = default_of(MapperSettings, "settle_window_kfs"),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -176,6 +185,13 @@ class Collaboration:
         self.max_continues = 3
         # Settling (see the module's docstring): 0 = only loops and merges optimize.
         self.settle_kfs = settle_after_kfs
+        # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
+        self.settle_window_kfs = settle_window_kfs
+        self._local_run_s: dict[str, float] = {}  # map -> seconds its last windowed BA ran
+        self._last_local: dict[str, float] = {}  # map -> when its last windowed copy went out
+        # Keyframes in the map when a windowed copy was taken, by (map, version): its
+        # correction leaves those outside the window as they are.
+        self._window_keep: dict[tuple[str, int], set[int]] = {}
         self._settled: dict[str, int] = {}  # agent -> its newest keyframe a correction settled
         self._inflight: dict[str, float] = {}  # map -> when its request went out (monotonic)
         self.inflight_timeout_s = 60.0  # a job lost (failed, superseded) is given up after
@@ -396,12 +412,14 @@ class Collaboration:
         optimization of the map is out (requested, its correction not yet applied, for
         less than ``inflight_timeout_s`` or three of its last runs) or already due. The
         maps marked."""
-        if self.settle_kfs <= 0:
+        local = self.settle_window_kfs > 0
+        after = self.settle_window_kfs if local else self.settle_kfs
+        if after <= 0:
             return []
         marked = []
         for h in list(self.reg.handlers().values()):
             settled = self._settled.get(h.agent)
-            if settled is None or h.latest_kf - settled < self.settle_kfs:
+            if settled is None or h.latest_kf - settled < after:
                 continue
             map_id = self.reg.resolve(h.map_id)
             if self.reg.get(map_id) is None:
@@ -411,7 +429,7 @@ class Collaboration:
                 timeout = max(self.inflight_timeout_s, 3.0 * self._run_s.get(map_id, 0.0))
                 if map_id in self._dirty or (sent is not None and now - sent < timeout):
                     continue
-                self._dirty[map_id] = "settle"
+                self._dirty[map_id] = "local" if local else "settle"
                 OPT_PENDING.set(len(self._dirty))
             marked.append(map_id)
         return marked
@@ -434,10 +452,21 @@ class Collaboration:
             out = []
             for map_id, reason in list(self._dirty.items()):
                 map_id = self.reg.resolve(map_id)
-                cost = self._copy_s.get(map_id, 0.0) + self._corr_s.get(map_id, 0.0)
-                interval = max(self.min_interval, cost / self.opt_share,
-                               self._run_s.get(map_id, 0.0) / self.optimizer_share)  # fmt: skip
-                if now - self._last_request.get(map_id, -1e9) >= interval:
+                if reason == "local":
+                    # A windowed BA is spaced by its own cost, not by the global runs'.
+                    interval = max(
+                        self.min_interval, self._local_run_s.get(map_id, 0.0) / self.optimizer_share
+                    )
+                    last = self._last_local.get(map_id, -1e9)
+                else:
+                    cost = self._copy_s.get(map_id, 0.0) + self._corr_s.get(map_id, 0.0)
+                    interval = max(
+                        self.min_interval,
+                        cost / self.opt_share,
+                        self._run_s.get(map_id, 0.0) / self.optimizer_share,
+                    )
+                    last = self._last_request.get(map_id, -1e9)
+                if now - last >= interval:
                     out.append((map_id, reason))
                     self._dirty.pop(map_id, None)
             for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
@@ -451,22 +480,42 @@ class Collaboration:
         if smap is None or len(smap.kfs) < 3:
             return None
         t0 = time.perf_counter()
+        local = reason == "local"
+        keep: set[int] = set()
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
         with self._opt_lock:
             reg.wait_for_batches()
             with reg.lock(map_id):
-                loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
-                         if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
-                cap = capture_map(smap, loops)
+                if local:
+                    # A windowed BA (capture_window); what it leaves out stays put.
+                    cap = capture_window(smap)
+                    keep = set(smap.kfs)
+                else:
+                    loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
+                             if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
+                    cap = capture_map(smap, loops)
+            if cap is None:
+                if local:
+                    self._last_local[map_id] = time.monotonic()  # not again at once
+                return None
+            keep.difference_update(cap.gids)
             t1 = time.perf_counter()
             req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
-        self._last_request[map_id] = time.monotonic()
+        sent = time.monotonic()
+        if local:
+            self._last_local[map_id] = sent
+        else:
+            self._last_request[map_id] = sent
         with self._lock:
-            self._inflight[map_id] = self._last_request[map_id]
+            self._inflight[map_id] = sent
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
+            for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
+                del self._window_keep[k]
+            if local:
+                self._window_keep[(map_id, int(req.version))] = keep
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
@@ -474,8 +523,9 @@ class Collaboration:
         t3 = time.perf_counter()
         job = self.jobs.submit(map_id, data)
         t4 = time.perf_counter()
-        with self._lock:
-            self._copy_s[map_id] = t4 - t0
+        if not local:
+            with self._lock:
+                self._copy_s[map_id] = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
         feedback_dump.record("mapper", "request", map_id=map_id, reason=reason,
                              version=int(req.version), kfs=len(req.kf_gids))  # fmt: skip
@@ -502,8 +552,15 @@ class Collaboration:
             REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "duplicate").inc()
             log.info("correction of job %s for %s already applied", c.job, c.map_id)
             return False
+        local = c.stats.get("reason") == "local"
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
+            keep = self._window_keep.pop((c.map_id, int(c.base_version)), None)
+        if local and keep is None:
+            # A windowed BA whose copy this mapper no longer knows (restarted, or the
+            # map taken over): without knowing what it left out, it is not applied.
+            REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
+            return False
         t0 = time.perf_counter()
         with self._opt_lock:
             # Worked out off the lock on a copy of the map's points (300k points of a big
@@ -518,7 +575,8 @@ class Collaboration:
                 # Between slices it sleeps while batches wait, at most 0.1 s a slice (a
                 # second in all for 200k points): the corrected map is not held back long.
                 plan = plan_correction(smap, c, snap_poses, points, journal,
-                                       pause=lambda: reg.wait_for_batches(0.1))  # fmt: skip
+                                       pause=lambda: reg.wait_for_batches(0.1),
+                                       keep=keep if local else None)  # fmt: skip
                 del points
                 reg.wait_for_batches()
                 with reg.lock(c.map_id):
@@ -526,7 +584,7 @@ class Collaboration:
                         # Merged into another map meanwhile: a request for it follows.
                         REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
                         return False
-                    res = apply_correction(smap, c, snap_poses, plan)
+                    res = apply_correction(smap, c, snap_poses, plan, keep=keep if local else None)
                     smap.stop_recording(journal)
                     changed_kfs = res.kfs | res.kfs_propagated
                     for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(),
@@ -544,14 +602,19 @@ class Collaboration:
             self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         with self._lock:
             self._inflight.pop(c.map_id, None)
-            self._corr_s[c.map_id] = time.perf_counter() - t0
             run_s = c.stats.get("seconds")
-            if isinstance(run_s, int | float) and np.isfinite(run_s):
-                self._run_s[c.map_id] = float(run_s)
+            run_s = float(run_s) if isinstance(run_s, int | float) and np.isfinite(run_s) else None
+            if local:
+                if run_s is not None:
+                    self._local_run_s[c.map_id] = run_s
+            else:
+                self._corr_s[c.map_id] = time.perf_counter() - t0
+                if run_s is not None:
+                    self._run_s[c.map_id] = run_s
         CORRECTIONS.inc()
         feedback_dump.record("mapper", "opt", map_id=c.map_id, kfs=len(changed_kfs),
                              base_version=int(c.base_version), stats=dict(c.stats))  # fmt: skip
-        if c.stats.get("ba_stop") == "time_budget":
+        if c.stats.get("ba_stop") == "time_budget" and not local:
             self._continue(c.map_id)
         log.info("applied correction to %s: %d keyframes (%d carried along), %d points (%s)",
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),

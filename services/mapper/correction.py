@@ -114,12 +114,16 @@ def plan_correction(
     points: dict | None = None,
     new_points: list[int] | None = None,
     pause: Callable[[], None] | None = None,
+    keep: set[int] | None = None,
 ) -> CorrectionPlan:
     """What ``corr`` does to ``points`` (a shallow copy of the map's points taken under
     its lock; default: the live map's, under the caller's lock). ``new_points``: the
     map's journal of points added since the copy (``ServerMap.record_new_points``),
     read when the plan is applied. ``pause`` is called between slices of points (the
-    service sleeps there while keyframe batches wait)."""
+    service sleeps there while keyframe batches wait). ``keep``: as for
+    :func:`apply_correction`; points outside the correction anchored to those are left
+    out of the plan (a windowed correction then touches only its window's points under
+    the lock, not every point of the map)."""
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
     kf_C = []
@@ -144,7 +148,8 @@ def plan_correction(
         for g, mp in islice(items, PLAN_SLICE):
             i = index.get(g)
             if i is None:
-                rest.append(g)
+                if keep is None or mp.ref_kf not in keep:
+                    rest.append(g)
                 continue
             found += 1
             if mp.ref_kf in snap:
@@ -168,6 +173,7 @@ def apply_correction(
     corr: CorrectionMsg,
     T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
     plan: CorrectionPlan | None = None,
+    keep: set[int] | None = None,
 ) -> AppliedCorrection:
     """Write ``corr`` into ``smap`` (see the module doc). ``T_m_kf_at_snapshot``: the
     poses the correction was computed from, when some changed since the snapshot
@@ -179,9 +185,13 @@ def apply_correction(
     anchor moved out of the snapshot since the plan (its keyframe was culled), and the
     points added since (the plan's journal), follow the rules below like the rest.
     The map's lock is held for this call: a half-corrected map would register new
-    keyframes against stale points."""
+    keyframes against stale points.
+
+    ``keep``: keyframes a windowed copy left out (services/mapper/capture.py
+    capture_window): they, and the points anchored to them, stay as they are; only
+    keyframes that arrived since the copy follow an anchor."""
     if plan is None:
-        plan = plan_correction(smap, corr, T_m_kf_at_snapshot)
+        plan = plan_correction(smap, corr, T_m_kf_at_snapshot, keep=keep)
     res = AppliedCorrection(mps_missing=plan.mps_missing)
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
@@ -210,7 +220,7 @@ def apply_correction(
     # before any pose is overwritten.
     memo: dict[int, int | None] = {}
     for g, kf in smap.kfs.items():
-        if g in C:
+        if g in C or (keep is not None and g in keep):
             continue
         a = _anchor(smap, g, C, memo)
         if a is None:
@@ -254,6 +264,8 @@ def apply_correction(
             res.mps.add(m)
             continue
         Cr = C.get(mp.ref_kf)
+        if Cr is None and keep is not None and mp.ref_kf in keep:
+            continue  # outside the window
         if Cr is None:
             # Reference gone or unanchored: any corrected observer will do.
             Cr = next((C[o] for o in mp.obs if o in C), None)

@@ -368,9 +368,13 @@ class MapperService:
         # Per agent: (handler, result) registered in memory whose store failed (see
         # ``store_and_ack``).
         self._unstored: dict[str, list] = {}
-        self.collab = Collaboration(self.registry, self.store,
-                                    settings.mapper.optimize_min_interval_s,
-                                    settle_after_kfs=settings.mapper.settle_after_kfs)  # fmt: skip
+        self.collab = Collaboration(
+            self.registry,
+            self.store,
+            settings.mapper.optimize_min_interval_s,
+            settle_after_kfs=settings.mapper.settle_after_kfs,
+            settle_window_kfs=settings.mapper.settle_window_kfs,
+        )
         m = settings.mapper
         self.own = Ownership(self.store, m.instance or socket.gethostname(), m.lease_s)
         self.collab.pipeline = self.own.pipeline

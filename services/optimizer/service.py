@@ -97,6 +97,9 @@ class OptimizerService:
 
         # No loop edge: nothing for the pose graph to distribute.
         params = GlobalParams.from_settings(o, run_pgo=len(req.loops) > 0)
+        if req.reason == "local":
+            # A windowed BA (the mapper's capture_window): its own, shorter budget.
+            params.ba.time_budget_s = o.local_ba_time_budget_s
         corr = optimize_map(req, params, between_stages)
         corr.stats["seconds"] = time.perf_counter() - t0
         corr.stats["reason"] = req.reason
