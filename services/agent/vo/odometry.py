@@ -285,6 +285,14 @@ class VisualOdometry:
         P, D = self._points(pids)
         T_pred = self.T_last @ self._motion()
         res, pi, kp = self._predict(f, T_pred, P, D)
+        # Few own inliers in the first pass need not mean a thin map: the prediction may
+        # just have been poor (a sudden turn at 10 Hz), so the wide search's RANSAC found
+        # only some of the points. Refined, the own points may be plenty, and then the
+        # server's do not join (their coherent offset would pull the pose: seen on MH05
+        # at every=3, a 0.17 m spike on the one frame where 41 own inliers let them in).
+        seen = None
+        if self.foreign and res is not None and res.inliers.sum() < self._strong:
+            res, pi, kp, seen = self._refine(f, res, pi, kp, P, D)
         weak = res is None or res.inliers.sum() < self._strong
         if weak and self.foreign:
             ids = self._local_points(with_foreign=True)
@@ -295,6 +303,7 @@ class VisualOdometry:
             if (r2 is not None and (res is None or r2.inliers.sum() > res.inliers.sum())
                     and self._plausible(r2, T_pred if res is None else res.T_w_c)):  # fmt: skip
                 res, pi, kp, pids, P, D = r2, pi2, kp2, ids, P2, D2
+                seen = None
         was_lost = self.state == "lost"
         if res is None:
             res, pi, kp, P = self._relocalize(f, pids, T_pred)
@@ -311,12 +320,9 @@ class VisualOdometry:
                 return FrameResult(stamp, T_pred.copy(), "lost", T_pred=T_pred.copy(),
                                    how="lost")  # fmt: skip
             self.relocalized += 1
-        # Second pass: with the refined pose, a tighter search finds more points.
-        pi2, kp2, seen = self._search(f, res.T_w_c, P, D, self.p.refine_radius)
-        if len(pi2) >= self.p.min_inliers:
-            r2 = solve_pnp(P[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
-            if r2.ok and r2.inliers.sum() >= res.inliers.sum() * self.p.refine_keep_ratio:
-                res, pi, kp = r2, pi2, kp2
+            seen = None
+        if seen is None:  # not refined yet
+            res, pi, kp, seen = self._refine(f, res, pi, kp, P, D)
         res, pi, kp = self._gate_foreign(f, res, pids, pi, kp, P)
         for i in pids[seen].tolist():
             self.mps[i].visible += 1
@@ -354,6 +360,15 @@ class VisualOdometry:
             self.frames_since_kf = 0
             out.map_s = time.perf_counter() - t
         return out
+
+    def _refine(self, f: Features, res, pi, kp, P: np.ndarray, D: np.ndarray):
+        """Second pass: with the refined pose, a tighter search finds more points."""
+        pi2, kp2, seen = self._search(f, res.T_w_c, P, D, self.p.refine_radius)
+        if len(pi2) >= self.p.min_inliers:
+            r2 = solve_pnp(P[pi2], f.xy[kp2], self.cam.fx, T_guess=res.T_w_c)
+            if r2.ok and r2.inliers.sum() >= res.inliers.sum() * self.p.refine_keep_ratio:
+                return r2, pi2, kp2, seen
+        return res, pi, kp, seen
 
     def _gate_foreign(self, f: Features, res, pids, pi, kp, P):
         """Server points count only where they agree with the agent's own. They sit in
