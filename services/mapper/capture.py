@@ -55,17 +55,23 @@ def capture_map(
     smap: ServerMap, loops: list[tuple[int, int, np.ndarray]], fixed: list[int] | None = None
 ) -> MapCapture:
     gids = sorted(smap.kfs)
-    kfs = [smap.kfs[g] for g in gids]
     if fixed is None:
         fixed = [oldest_keyframe(smap)] if gids else []
+    return _capture(smap, gids, dict(smap.mps), list(loops), list(fixed))
+
+
+def _capture(smap: ServerMap, gids: list[int], points: dict,
+             loops: list[tuple[int, int, np.ndarray]], fixed: list[int]) -> MapCapture:  # fmt: skip
+    """The keyframes ``gids`` of ``smap`` copied (poses, observations, graph edges)."""
+    kfs = [smap.kfs[g] for g in gids]
     return MapCapture(
         map_id=smap.map_id, version=smap.version, gids=gids,
         T=np.array([k.T_m_kf for k in kfs], np.float64).reshape(-1, 4, 4),
         kf_mp=[k.mp.copy() for k in kfs], kf_xy=[k.xy for k in kfs],
         kf_oct=[k.octaves for k in kfs], parents=[k.parent for k in kfs],
         covis=[dict(smap.covis.get(g, {})) for g in gids],
-        loop_edges=[set(k.loop_edges) for k in kfs], points=dict(smap.mps),
-        loops=list(loops), fixed=list(fixed),
+        loop_edges=[set(k.loop_edges) for k in kfs], points=points,
+        loops=loops, fixed=fixed,
     )  # fmt: skip
 
 
@@ -202,14 +208,4 @@ def capture_window(
     fixed = {g for g, _ in shared.most_common(max_fixed)}
     if len(fixed) < 2:
         return None
-    gids = sorted(free_g | fixed)
-    kfs = [smap.kfs[g] for g in gids]
-    return MapCapture(
-        map_id=smap.map_id, version=smap.version, gids=gids,
-        T=np.array([k.T_m_kf for k in kfs], np.float64).reshape(-1, 4, 4),
-        kf_mp=[k.mp.copy() for k in kfs], kf_xy=[k.xy for k in kfs],
-        kf_oct=[k.octaves for k in kfs], parents=[k.parent for k in kfs],
-        covis=[dict(smap.covis.get(g, {})) for g in gids],
-        loop_edges=[set(k.loop_edges) for k in kfs], points=pts,
-        loops=[], fixed=sorted(fixed),
-    )  # fmt: skip
+    return _capture(smap, sorted(free_g | fixed), pts, [], sorted(fixed))
