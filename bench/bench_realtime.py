@@ -14,6 +14,7 @@ rendered into the render cache before the paced run (``render_warm_s``: what tha
 decoded images.
 
     .venv/bin/python bench/bench_realtime.py [--seqs MH01,MH02,MH03] [--cpus 0,1] [--repeat N]
+        [--seed S]
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import run_agent, table, write_report  # noqa: E402
+from common import run_agent, synthetic_spec, table, write_report  # noqa: E402
 
 from services.launcher import _hivemap_exe  # noqa: E402
 from shared.trajectory import ate, read_tum  # noqa: E402
@@ -48,10 +49,10 @@ def warm(src: str) -> float:
     return time.monotonic() - t
 
 
-def fly(seq: str, frames: str, realtime: bool, cpus: str) -> dict:
+def fly(seq: str, frames: str, realtime: bool, cpus: str, seed: int = 0) -> dict:
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-rt-{seq}-"))
     agent = f"rt-{seq}"
-    src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+    src = synthetic_spec(seq, frames, seed)
     argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--no-server",
                              "--out", str(out)] + (["--realtime"] if realtime else [])  # fmt: skip
     if cpus:
@@ -62,7 +63,7 @@ def fly(seq: str, frames: str, realtime: bool, cpus: str) -> dict:
     a = ate(read_tum(out / f"{agent}_online.tum"), gt)
     n = st["frames"] + st["dropped_frames"]
     return {
-        "seq": seq, "realtime": realtime, "frames": st["frames"],
+        "seq": seq, "seed": seed, "realtime": realtime, "frames": st["frames"],
         "dropped": st["dropped_frames"], "dropped_pct": 100.0 * st["dropped_frames"] / n,
         "latency_ms_median": 1e3 * st["latency_s_median"],
         "latency_ms_p95": 1e3 * st["latency_s_p95"],
@@ -76,6 +77,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seqs", default="MH01,MH02,MH03")
     ap.add_argument("--frames", default="")
+    ap.add_argument("--seed", type=int, default=0, help="the synthetic world's seed")
     ap.add_argument("--cpus", default="0,1", help="taskset CPU list ('' = no limit)")
     ap.add_argument("--name", default="realtime")
     ap.add_argument("--repeat", type=int, default=1, help="paced runs per sequence")
@@ -84,8 +86,8 @@ def main() -> int:
     for seq in args.seqs.split(","):
         # Paced runs differ (what is dropped, when each local BA comes back); the
         # unpaced run is deterministic (local BA inline), so it runs once.
-        paced = [fly(seq, args.frames, True, args.cpus) for _ in range(args.repeat)]
-        unpaced = fly(seq, args.frames, False, args.cpus)
+        paced = [fly(seq, args.frames, True, args.cpus, args.seed) for _ in range(args.repeat)]
+        unpaced = fly(seq, args.frames, False, args.cpus, args.seed)
         for p in paced:
             p["ate_unpaced_m"] = unpaced["ate_m"]
             p["ate_vs_unpaced"] = p["ate_m"] / unpaced["ate_m"]

@@ -8,7 +8,7 @@ mapping time per keyframe, agent -> server bytes per second of flight, keyframe
 latency (agent publish -> ack, and mapper received -> acked), and the server-map
 keyframe trajectory ATE against the agent's own keyframe poses.
 
-    .venv/bin/python bench/bench_vo.py [--seqs MH01,MH02,MH03] [--frames A:B]
+    .venv/bin/python bench/bench_vo.py [--seqs MH01,MH02,MH03] [--frames A:B] [--seed S]
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from common import (  # noqa: E402
     mapper_metrics,
     run_agent,
     stack_settings,
+    synthetic_spec,
     table,
     write_report,
 )
@@ -53,18 +54,19 @@ def evo_ate(est: Path, ref: Path) -> float | None:
     return float(ape.get_statistic(metrics.StatisticsType.rmse))
 
 
-def run_alone(seq: str, frames: str) -> dict:
+def run_alone(seq: str, frames: str, seed: int = 0) -> dict:
     """The agent with no server at all (``--no-server``): on-board VO only."""
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-alone-{seq}-"))
     agent = f"vo-{seq}"
-    src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+    src = synthetic_spec(seq, frames, seed)
     argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src, "--no-server",
                              "--out", str(out)]  # fmt: skip
     st, gt = run_agent(argv, out, agent)
     online = read_tum(out / f"{agent}_online.tum")
     a_online = ate(online, gt)
     return {
-        "seq": seq, "server": False, "frames": st["frames"], "path_m": a_online.path_length,
+        "seq": seq, "seed": seed, "server": False, "frames": st["frames"],
+        "path_m": a_online.path_length,
         "ate_online_m": a_online.rmse, "ate_online_pct": a_online.percent_of_path,
         "ate_online_evo_m": evo_ate(out / f"{agent}_online.tum", out / f"{agent}_gt.tum"),
         "longest_lost_s": st["longest_lost_s"],
@@ -73,14 +75,14 @@ def run_alone(seq: str, frames: str) -> dict:
     }  # fmt: skip
 
 
-def run(seq: str, frames: str) -> dict:
+def run(seq: str, frames: str, seed: int = 0) -> dict:
     settings = stack_settings()
     stack = Stack(settings)
     stack.start(with_api=False)
     out = Path(tempfile.mkdtemp(prefix=f"hivemap-vo-{seq}-"))
     agent = f"vo-{seq}"
     try:
-        src = f"synthetic:{seq}" + (f"?frames={frames}" if frames else "")
+        src = synthetic_spec(seq, frames, seed)
         argv = _hivemap_exe() + ["agent", "--id", agent, "--source", src,
                                  "--server", stack.zenoh_endpoint, "--out", str(out)]  # fmt: skip
         st, gt = run_agent(argv, out, agent)
@@ -103,7 +105,7 @@ def run(seq: str, frames: str) -> dict:
     a_server = ate(Trajectory(stamps, poses), gt)
     flight_s = (gt.stamps_ns[-1] - gt.stamps_ns[0]) * 1e-9
     return {
-        "seq": seq, "frames": st["frames"], "path_m": a_online.path_length,
+        "seq": seq, "seed": seed, "frames": st["frames"], "path_m": a_online.path_length,
         "ate_online_m": a_online.rmse, "ate_online_pct": a_online.percent_of_path,
         "ate_online_evo_m": evo_ate(out / f"{agent}_online.tum", out / f"{agent}_gt.tum"),
         "ate_vo_m": a_vo.rmse, "longest_lost_s": st["longest_lost_s"],
@@ -126,12 +128,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seqs", default="MH01,MH02,MH03")
     ap.add_argument("--frames", default="")
+    ap.add_argument("--seed", type=int, default=0, help="the synthetic world's seed")
     ap.add_argument("--no-server", action="store_true", help="the agent alone (issue item 1-2)")
     ap.add_argument("--name", default="", help="results name (default: vo[_alone][_partial])")
     args = ap.parse_args()
     rows = []
     for seq in track(args.seqs.split(","), "sequences"):
-        rows.append((run_alone if args.no_server else run)(seq, args.frames))
+        rows.append((run_alone if args.no_server else run)(seq, args.frames, args.seed))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     name = args.name or (
         "vo" + ("_alone" if args.no_server else "") + ("_partial" if args.frames else "")

@@ -52,6 +52,12 @@ def write_report(name: str, data: dict) -> Path:
     return path
 
 
+def synthetic_spec(seq: str, frames: str = "", seed: int = 0) -> str:
+    """The agent's ``--source`` for a rendered sequence of world ``seed``."""
+    q = ([f"seed={seed}"] if seed else []) + ([f"frames={frames}"] if frames else [])
+    return f"synthetic:{seq}" + (f"?{'&'.join(q)}" if q else "")
+
+
 def table(rows: list[dict], cols: list[str]) -> str:
     cells = [[str(c) for c in cols]] + [[_fmt(r.get(c, "")) for c in cols] for r in rows]
     widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
