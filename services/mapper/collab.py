@@ -84,7 +84,7 @@ from shared.messages import (
     OptimizeRequest,
 )
 from shared.metrics import MAP_SIZE, REJECTED
-from shared.settings import MapperSettings, default_of
+from shared.settings import MapperSettings, OptimizerSettings, default_of
 from shared.store import Store
 from shared.transport import Bus
 
@@ -147,6 +147,7 @@ class Collaboration:
         optimizer_share: float = 0.25,
         settle_after_kfs: int = default_of(MapperSettings, "settle_after_kfs"),
         settle_window_kfs: int = default_of(MapperSettings, "settle_window_kfs"),
+        local_ba_time_budget_s: float = default_of(OptimizerSettings, "local_ba_time_budget_s"),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -188,13 +189,15 @@ class Collaboration:
         # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
         self.settle_window_kfs = settle_window_kfs
         self._local_run_s: dict[str, float] = {}  # map -> seconds its last windowed BA ran
+        self.local_budget_s = local_ba_time_budget_s  # the optimizer's for a windowed BA
         self._last_local: dict[str, float] = {}  # map -> when its last windowed copy went out
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
         self._window_keep: dict[tuple[str, int], set[int]] = {}
         self._settled: dict[str, int] = {}  # agent -> its newest keyframe a correction settled
-        self._inflight: dict[str, float] = {}  # map -> when its request went out (monotonic)
-        self.inflight_timeout_s = 60.0  # a job lost (failed, superseded) is given up after
+        # map -> when its newest request went out (monotonic) and whether it was "local"
+        self._inflight: dict[str, tuple[float, bool]] = {}
+        self.inflight_timeout_s = 60.0  # a global job lost (failed, superseded) is given up after
 
     # --- state --------------------------------------------------------------------------
     def load(self, only: set[str] | None = None) -> None:
@@ -410,8 +413,7 @@ class Collaboration:
         ``settle_kfs`` keyframes past their newest settled one (only agents a correction
         has settled before: a map no loop or merge has optimized yet is not), unless an
         optimization of the map is out (requested, its correction not yet applied, for
-        less than ``inflight_timeout_s`` or three of its last runs) or already due. The
-        maps marked."""
+        less than :meth:`_inflight_timeout`) or already due. The maps marked."""
         local = self.settle_window_kfs > 0
         after = self.settle_window_kfs if local else self.settle_kfs
         if after <= 0:
@@ -425,14 +427,33 @@ class Collaboration:
             if self.reg.get(map_id) is None:
                 continue  # another mapper's
             with self._lock:
-                sent = self._inflight.get(map_id)
-                timeout = max(self.inflight_timeout_s, 3.0 * self._run_s.get(map_id, 0.0))
-                if map_id in self._dirty or (sent is not None and now - sent < timeout):
+                out = self._inflight.get(map_id)
+                if map_id in self._dirty or (
+                    out is not None and now - out[0] < self._inflight_timeout(map_id, out[1])
+                ):
                     continue
                 self._dirty[map_id] = "local" if local else "settle"
                 OPT_PENDING.set(len(self._dirty))
             marked.append(map_id)
         return marked
+
+    def _inflight_timeout(self, map_id: str, local: bool) -> float:
+        """Seconds a request of ``map_id`` (``local``: a windowed BA) counts as out; past
+        that it is taken for lost (its job failed or was superseded, its correction
+        dropped on the way or rejected) and settling may ask again. Under ``_lock``."""
+        global_s = self._run_s.get(map_id, 0.0)
+        if not local:
+            return max(self.inflight_timeout_s, 3.0 * global_s)
+        # A windowed BA runs for about its own measured time, and not much past the
+        # optimizer's budget for it: three of the longer of the two, as three runs bound a
+        # global request. Not the global bound: a lost window (its correction dropped on a
+        # lossy link) would hold settling back for 60 s or more, where windows take seconds.
+        # Plus the map's last global run time, for a window queued behind a global run of
+        # the map still out (an older request's correction clears ``_inflight`` of a newer
+        # one; the optimizer lets a running copy finish once the map's restarts are spent,
+        # ``max_restarts``): given up meanwhile, another window would be sent to replace
+        # one about to run.
+        return global_s + 3.0 * max(self._local_run_s.get(map_id, 0.0), self.local_budget_s)
 
     def _note_settled(self, map_id: str, kf_gids: np.ndarray) -> None:
         """The newest keyframe of each agent of ``map_id`` that a correction over
@@ -509,7 +530,7 @@ class Collaboration:
         else:
             self._last_request[map_id] = sent
         with self._lock:
-            self._inflight[map_id] = sent
+            self._inflight[map_id] = (sent, local)
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
             for k in [k for k in self._window_keep if k[0] == map_id][:-3]:

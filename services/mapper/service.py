@@ -374,6 +374,7 @@ class MapperService:
             settings.mapper.optimize_min_interval_s,
             settle_after_kfs=settings.mapper.settle_after_kfs,
             settle_window_kfs=settings.mapper.settle_window_kfs,
+            local_ba_time_budget_s=settings.optimizer.local_ba_time_budget_s,
         )
         m = settings.mapper
         self.own = Ownership(self.store, m.instance or socket.gethostname(), m.lease_s)
