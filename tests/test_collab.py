@@ -444,8 +444,8 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     assert c._settled["A"] == ha.latest_kf
     assert smap.check_invariants() == []
     # Spaced by its own run time (far shorter than the global BA's).
-    assert c._local_run_s[map_id] == corr.stats["seconds"]
-    assert c._run_s[map_id] == glob.stats["seconds"]
+    assert c._spacing(map_id, "local").run_s == corr.stats["seconds"]
+    assert c._spacing(map_id, "global").run_s == glob.stats["seconds"]
     print(
         f"window {len(window)} of {len(smap.kfs)} kfs, free {len(free)}, "
         f"{corr.stats['seconds']:.2f} s vs global {glob.stats['seconds']:.2f} s; "
