@@ -163,6 +163,22 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     assert _joint_rigid_error(svc, gts, "AB") < 1e-6
 
 
+def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):
+    """A map another mapper took over takes its agents' handlers with it
+    (``MapRegistry.drop``), and what a correction had settled of them here goes too."""
+    from types import SimpleNamespace
+
+    svc = MapperService(Settings(redis_url=redis_url))
+    reg, c = svc.registry, svc.collab
+    for agent, map_id in (("A", "map-a"), ("B", "map-b")):
+        reg.ensure_map(map_id)
+        reg.add_handler(SimpleNamespace(agent=agent, map_id=map_id))
+        c._settled[agent] = 7
+    svc.drop_map("map-a", "lease lost")
+    assert reg.handler("A") is None and "A" not in c._settled
+    assert c._settled == {"B": 7}
+
+
 def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
     """Agents A (MH01) and B (MH02), 700 frames each with drift, fed to ``svc``:
     (ground truths, simulated agents) by agent."""

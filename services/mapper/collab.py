@@ -65,7 +65,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,7 +216,8 @@ class Collaboration:
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
         self._window_keep: dict[tuple[str, int], set[int]] = {}
-        self._settled: dict[str, int] = {}  # agent -> its newest keyframe a correction settled
+        # agent -> its newest keyframe a correction settled (while its handler is here)
+        self._settled: dict[str, int] = {}
         # map -> when its newest request went out (monotonic) and its reason
         self._inflight: dict[str, tuple[float, str]] = {}
         self.inflight_timeout_s = 60.0  # a global job lost (failed, superseded) is given up after
@@ -494,6 +495,15 @@ class Collaboration:
                 newest = int(mine.max())
                 with self._lock:
                     self._settled[h.agent] = max(newest, self._settled.get(h.agent, -1))
+
+    def forget_agents(self, agents: Iterable[str]) -> None:
+        """Agents whose handlers the registry dropped with their map (``MapRegistry.drop``:
+        another mapper owns it now): what they had settled here is that mapper's to
+        track. Should the map come back, its agents settle again from the next
+        correction, as on any mapper that takes a map over."""
+        with self._lock:
+            for agent in agents:
+                self._settled.pop(agent, None)
 
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
