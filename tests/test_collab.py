@@ -163,6 +163,22 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     assert _joint_rigid_error(svc, gts, "AB") < 1e-6
 
 
+def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):
+    """A map another mapper took over takes its agents' handlers with it
+    (``MapRegistry.drop``), and what a correction had settled of them here goes too."""
+    from types import SimpleNamespace
+
+    svc = MapperService(Settings(redis_url=redis_url))
+    reg, c = svc.registry, svc.collab
+    for agent, map_id in (("A", "map-a"), ("B", "map-b")):
+        reg.ensure_map(map_id)
+        reg.add_handler(SimpleNamespace(agent=agent, map_id=map_id))
+        c._settled[agent] = 7
+    svc.drop_map("map-a", "lease lost")
+    assert reg.handler("A") is None and "A" not in c._settled
+    assert c._settled == {"B": 7}
+
+
 def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
     """Agents A (MH01) and B (MH02), 700 frames each with drift, fed to ``svc``:
     (ground truths, simulated agents) by agent."""
@@ -444,10 +460,60 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     assert c._settled["A"] == ha.latest_kf
     assert smap.check_invariants() == []
     # Spaced by its own run time (far shorter than the global BA's).
-    assert c._local_run_s[map_id] == corr.stats["seconds"]
-    assert c._run_s[map_id] == glob.stats["seconds"]
+    assert c._spacing(map_id, "local").run_s == corr.stats["seconds"]
+    assert c._spacing(map_id, "global").run_s == glob.stats["seconds"]
     print(
         f"window {len(window)} of {len(smap.kfs)} kfs, free {len(free)}, "
         f"{corr.stats['seconds']:.2f} s vs global {glob.stats['seconds']:.2f} s; "
         f"unsettled error {1e3 * before:.3f} -> {1e3 * after:.3f} milli-units"
     )
+
+
+def test_a_lost_windowed_ba_holds_settling_back_for_its_own_run_time_only(redis_url, world):
+    """A windowed BA whose correction never comes (its job failed, the correction was
+    dropped on the way) is given up after a few of its own runs (plus the map's global
+    run it may have queued behind), not after the minute a global request gets: the next
+    settle mark comes within seconds. A lost global request still holds it back for
+    ``inflight_timeout_s``."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    assert c.due(time.monotonic()) == [(map_id, "merge")]
+    c.request(map_id, "merge")
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
+    job = opt.queue.take(block_s=0.1)
+    glob = opt.handle(job)
+    assert glob is not None and c.on_correction(CorrectionMsg.decode(glob.encode()))
+    global_s = glob.stats["seconds"]
+    local_budget_s = settings.optimizer.local_ba_time_budget_s
+    bound = global_s + 3.0 * local_budget_s  # no windowed BA has run yet
+    assert bound + 1.0 < c.inflight_timeout_s, (global_s, local_budget_s)
+
+    def lose(reason: str) -> float:
+        """Requests an optimization of the map whose job the optimizer takes and drops."""
+        assert c.due(time.monotonic() + 1e3) == [(map_id, reason)]
+        assert c.request(map_id, reason) is not None
+        sent = time.monotonic()
+        lost = opt.queue.take(block_s=0.1)
+        assert lost is not None and lost.map_id == map_id
+        opt.queue.done(lost)
+        return sent
+
+    now = time.monotonic()
+    assert c.mark_unsettled(now) == [map_id]
+    sent = lose("local")
+    assert c.mark_unsettled(sent + 1.0) == []  # out
+    assert c.mark_unsettled(sent + bound - 1.0) == []  # may be queued behind a global run
+    assert c.mark_unsettled(sent + bound + 1.0) == [map_id]  # lost: asked again
+    # A global request lost: as before, a minute (or three of the map's global runs).
+    c.mark_dirty(map_id, "loop")  # in place of the settle just marked
+    sent = lose("loop")
+    timeout = max(c.inflight_timeout_s, 3.0 * global_s)
+    assert c.mark_unsettled(sent + timeout - 1.0) == []
+    assert c.mark_unsettled(sent + timeout + 1.0) == [map_id]

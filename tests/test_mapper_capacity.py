@@ -52,18 +52,41 @@ def test_global_optimizations_of_a_map_are_spaced_by_their_run_time(redis_url):
     now = time.monotonic()
     c.mark_dirty("map-a", "loop")
     assert c.due(now) == [("map-a", "loop")]  # never asked before
-    c._last_request["map-a"] = now
+    c._spacing("map-a", "loop").sent = now
     c.mark_dirty("map-a", "loop")
     assert c.due(now + c.min_interval + 0.1) == [("map-a", "loop")]  # a cheap map
     # The optimizer ran the map's last optimization for 8 s: with at most
     # optimizer_share of a core for it, the next request waits 8 / share.
-    c._run_s["map-a"] = 8.0
-    c._last_request["map-a"] = now
+    c._spacing("map-a", "loop").run_s = 8.0
+    c._spacing("map-a", "loop").sent = now
     c.mark_dirty("map-a", "loop")
     gap = 8.0 / c.optimizer_share
     assert c.due(now + c.min_interval + 0.1) == []
     assert c.due(now + gap - 0.5) == []
     assert c.due(now + gap + 0.1) == [("map-a", "loop")]
+
+
+def test_windowed_bas_of_a_map_are_spaced_by_their_own_runs(redis_url):
+    """A windowed BA ("local") is spaced by its own run time, not by the map's global
+    runs nor by what their copies and corrections cost the mapper; and the other way
+    round."""
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    svc.registry.ensure_map("map-a")
+    now = time.monotonic()
+    g = c._spacing("map-a", "loop")
+    g.sent, g.run_s, g.copy_s, g.corr_s = now, 20.0, 2.0, 2.0
+    c.mark_dirty("map-a", "local")
+    assert c.due(now + c.min_interval + 0.1) == [("map-a", "local")]
+    w = c._spacing("map-a", "local")
+    assert w is not g and w.run_s == 0.0
+    w.sent, w.run_s = now, 2.0
+    c.mark_dirty("map-a", "local")
+    assert c.due(now + 2.0 / c.optimizer_share - 0.5) == []
+    assert c.due(now + 2.0 / c.optimizer_share + 0.1) == [("map-a", "local")]
+    g.sent = now - 1e3
+    c.mark_dirty("map-a", "settle")
+    assert c.due(now) == [("map-a", "settle")]  # a window out does not hold a global run
 
 
 def test_deferred_keyframe_events_go_out_a_slice_per_call(redis_url):
@@ -92,8 +115,8 @@ def test_a_map_held_back_by_the_spacing_counts_as_pending(redis_url):
     c = svc.collab
     svc.registry.ensure_map("map-a")
     now = time.monotonic()
-    c._run_s["map-a"] = 20.0
-    c._last_request["map-a"] = now
+    c._spacing("map-a", "loop").run_s = 20.0
+    c._spacing("map-a", "loop").sent = now
     c.mark_dirty("map-a", "loop")
     assert c.due(now + 10.0) == []
     assert sample_value("hivemap_optimize_pending", {}) == 1

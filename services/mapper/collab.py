@@ -65,7 +65,8 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import numpy as np
 import redis
@@ -84,7 +85,7 @@ from shared.messages import (
     OptimizeRequest,
 )
 from shared.metrics import MAP_SIZE, REJECTED
-from shared.settings import MapperSettings, default_of
+from shared.settings import MapperSettings, OptimizerSettings, default_of
 from shared.store import Store
 from shared.transport import Bus
 
@@ -133,6 +134,30 @@ def _spread(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
 
 
+def _kind(reason: str | None) -> str:
+    """The kind of a request for ``reason``: "local" for a windowed BA, "global" for any
+    other (loop, merge, settle, continue). Each kind of a map is spaced by its own runs
+    (:class:`_Spacing`)."""
+    return "local" if reason == "local" else "global"
+
+
+@dataclass
+class _Spacing:
+    """What spaces one kind of a map's requests (``Collaboration.due``): when the last
+    went out (monotonic), the seconds the optimizer ran the last one, and the seconds
+    the last copy and correction cost the mapper (recorded for global runs only)."""
+
+    sent: float = -1e9
+    run_s: float = 0.0
+    copy_s: float = 0.0
+    corr_s: float = 0.0
+
+    def interval(self, min_interval: float, opt_share: float, optimizer_share: float) -> float:
+        return max(
+            min_interval, (self.copy_s + self.corr_s) / opt_share, self.run_s / optimizer_share
+        )
+
+
 class Collaboration:
     """Matches, loops, merges, optimization requests and corrections on the maps of
     ``registry`` (which alone re-points agents when maps merge); writes go to
@@ -147,6 +172,7 @@ class Collaboration:
         optimizer_share: float = 0.25,
         settle_after_kfs: int = default_of(MapperSettings, "settle_after_kfs"),
         settle_window_kfs: int = default_of(MapperSettings, "settle_window_kfs"),
+        local_ba_time_budget_s: float = default_of(OptimizerSettings, "local_ba_time_budget_s"),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -161,19 +187,18 @@ class Collaboration:
         self.loops: dict[str, list[LoopConstraint]] = {}
         self.min_interval = optimize_min_interval_s
         self._dirty: dict[str, str] = {}  # map -> reason
-        self._last_request: dict[str, float] = {}
         self._lock = threading.Lock()
         # Map copies and corrections of any map, one at a time (see ``request``).
         self._opt_lock = threading.Lock()
-        # Seconds the last copy and the last correction of each map cost the mapper: for a
-        # big map (a second or more each) requests are spaced so that the two take at most
-        # ``opt_share`` of the mapper's time; small maps keep ``optimize_min_interval_s``.
-        self._copy_s: dict[str, float] = {}
-        self._corr_s: dict[str, float] = {}
+        # Requests of each map, by kind ("local" or "global", :func:`_kind`), are spaced
+        # by the last of that kind (:class:`_Spacing`): by the seconds the optimizer ran it
+        # (its correction says so) over ``optimizer_share``, and for a big map's global
+        # runs (a second or more each) by the seconds its copy and correction cost the
+        # mapper, so that the two take at most ``opt_share`` of the mapper's time; small
+        # maps keep ``optimize_min_interval_s``. A windowed BA is spaced by its own cost,
+        # not by the global runs'.
+        self._spacings: dict[tuple[str, str], _Spacing] = {}
         self.opt_share = opt_share
-        # Seconds the last optimization of each map ran in the optimizer (its correction
-        # says so): requests for the map are spaced by that over ``optimizer_share``.
-        self._run_s: dict[str, float] = {}
         self.optimizer_share = optimizer_share
         self.persist_chunk = 2000  # points per stored slice of a correction
         self.loop_fuse_max = 100  # matched point pairs fused per loop
@@ -187,14 +212,15 @@ class Collaboration:
         self.settle_kfs = settle_after_kfs
         # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
         self.settle_window_kfs = settle_window_kfs
-        self._local_run_s: dict[str, float] = {}  # map -> seconds its last windowed BA ran
-        self._last_local: dict[str, float] = {}  # map -> when its last windowed copy went out
+        self.local_budget_s = local_ba_time_budget_s  # the optimizer's for a windowed BA
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
         self._window_keep: dict[tuple[str, int], set[int]] = {}
-        self._settled: dict[str, int] = {}  # agent -> its newest keyframe a correction settled
-        self._inflight: dict[str, float] = {}  # map -> when its request went out (monotonic)
-        self.inflight_timeout_s = 60.0  # a job lost (failed, superseded) is given up after
+        # agent -> its newest keyframe a correction settled (while its handler is here)
+        self._settled: dict[str, int] = {}
+        # map -> when its newest request went out (monotonic) and its reason
+        self._inflight: dict[str, tuple[float, str]] = {}
+        self.inflight_timeout_s = 60.0  # a global job lost (failed, superseded) is given up after
 
     # --- state --------------------------------------------------------------------------
     def load(self, only: set[str] | None = None) -> None:
@@ -410,8 +436,7 @@ class Collaboration:
         ``settle_kfs`` keyframes past their newest settled one (only agents a correction
         has settled before: a map no loop or merge has optimized yet is not), unless an
         optimization of the map is out (requested, its correction not yet applied, for
-        less than ``inflight_timeout_s`` or three of its last runs) or already due. The
-        maps marked."""
+        less than :meth:`_inflight_timeout`) or already due. The maps marked."""
         local = self.settle_window_kfs > 0
         after = self.settle_window_kfs if local else self.settle_kfs
         if after <= 0:
@@ -425,14 +450,38 @@ class Collaboration:
             if self.reg.get(map_id) is None:
                 continue  # another mapper's
             with self._lock:
-                sent = self._inflight.get(map_id)
-                timeout = max(self.inflight_timeout_s, 3.0 * self._run_s.get(map_id, 0.0))
-                if map_id in self._dirty or (sent is not None and now - sent < timeout):
+                out = self._inflight.get(map_id)
+                if map_id in self._dirty or (
+                    out is not None and now - out[0] < self._inflight_timeout(map_id, out[1])
+                ):
                     continue
                 self._dirty[map_id] = "local" if local else "settle"
                 OPT_PENDING.set(len(self._dirty))
             marked.append(map_id)
         return marked
+
+    def _spacing(self, map_id: str, reason: str | None) -> _Spacing:
+        """The spacing record of ``map_id``'s requests of the kind of ``reason`` (or of
+        the kind itself, "local" or "global")."""
+        return self._spacings.setdefault((map_id, _kind(reason)), _Spacing())
+
+    def _inflight_timeout(self, map_id: str, reason: str) -> float:
+        """Seconds a request of ``map_id`` for ``reason`` counts as out; past
+        that it is taken for lost (its job failed or was superseded, its correction
+        dropped on the way or rejected) and settling may ask again. Under ``_lock``."""
+        global_s = self._spacing(map_id, "global").run_s
+        if _kind(reason) == "global":
+            return max(self.inflight_timeout_s, 3.0 * global_s)
+        # A windowed BA runs for about its own measured time, and not much past the
+        # optimizer's budget for it: three of the longer of the two, as three runs bound a
+        # global request. Not the global bound: a lost window (its correction dropped on a
+        # lossy link) would hold settling back for 60 s or more, where windows take seconds.
+        # Plus the map's last global run time, for a window queued behind a global run of
+        # the map still out (an older request's correction clears ``_inflight`` of a newer
+        # one; the optimizer lets a running copy finish once the map's restarts are spent,
+        # ``max_restarts``): given up meanwhile, another window would be sent to replace
+        # one about to run.
+        return global_s + 3.0 * max(self._spacing(map_id, "local").run_s, self.local_budget_s)
 
     def _note_settled(self, map_id: str, kf_gids: np.ndarray) -> None:
         """The newest keyframe of each agent of ``map_id`` that a correction over
@@ -447,26 +496,24 @@ class Collaboration:
                 with self._lock:
                     self._settled[h.agent] = max(newest, self._settled.get(h.agent, -1))
 
+    def forget_agents(self, agents: Iterable[str]) -> None:
+        """Agents whose handlers the registry dropped with their map (``MapRegistry.drop``:
+        another mapper owns it now): what they had settled here is that mapper's to
+        track. Should the map come back, its agents settle again from the next
+        correction, as on any mapper that takes a map over."""
+        with self._lock:
+            for agent in agents:
+                self._settled.pop(agent, None)
+
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:
             out = []
             for map_id, reason in list(self._dirty.items()):
                 map_id = self.reg.resolve(map_id)
-                if reason == "local":
-                    # A windowed BA is spaced by its own cost, not by the global runs'.
-                    interval = max(
-                        self.min_interval, self._local_run_s.get(map_id, 0.0) / self.optimizer_share
-                    )
-                    last = self._last_local.get(map_id, -1e9)
-                else:
-                    cost = self._copy_s.get(map_id, 0.0) + self._corr_s.get(map_id, 0.0)
-                    interval = max(
-                        self.min_interval,
-                        cost / self.opt_share,
-                        self._run_s.get(map_id, 0.0) / self.optimizer_share,
-                    )
-                    last = self._last_request.get(map_id, -1e9)
-                if now - last >= interval:
+                sp = self._spacing(map_id, reason)
+                if now - sp.sent >= sp.interval(
+                    self.min_interval, self.opt_share, self.optimizer_share
+                ):
                     out.append((map_id, reason))
                     self._dirty.pop(map_id, None)
             for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
@@ -481,6 +528,7 @@ class Collaboration:
             return None
         t0 = time.perf_counter()
         local = reason == "local"
+        spacing = self._spacing(map_id, reason)
         keep: set[int] = set()
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
@@ -497,19 +545,15 @@ class Collaboration:
                     cap = capture_map(smap, loops)
             if cap is None:
                 if local:
-                    self._last_local[map_id] = time.monotonic()  # not again at once
+                    spacing.sent = time.monotonic()  # not again at once
                 return None
             keep.difference_update(cap.gids)
             t1 = time.perf_counter()
             req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
-        sent = time.monotonic()
-        if local:
-            self._last_local[map_id] = sent
-        else:
-            self._last_request[map_id] = sent
+        sent = spacing.sent = time.monotonic()
         with self._lock:
-            self._inflight[map_id] = sent
+            self._inflight[map_id] = (sent, reason)
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
             for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
@@ -525,7 +569,7 @@ class Collaboration:
         t4 = time.perf_counter()
         if not local:
             with self._lock:
-                self._copy_s[map_id] = t4 - t0
+                spacing.copy_s = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
         feedback_dump.record("mapper", "request", map_id=map_id, reason=reason,
                              version=int(req.version), kfs=len(req.kf_gids))  # fmt: skip
@@ -603,14 +647,11 @@ class Collaboration:
         with self._lock:
             self._inflight.pop(c.map_id, None)
             run_s = c.stats.get("seconds")
-            run_s = float(run_s) if isinstance(run_s, int | float) and np.isfinite(run_s) else None
-            if local:
-                if run_s is not None:
-                    self._local_run_s[c.map_id] = run_s
-            else:
-                self._corr_s[c.map_id] = time.perf_counter() - t0
-                if run_s is not None:
-                    self._run_s[c.map_id] = run_s
+            spacing = self._spacing(c.map_id, c.stats.get("reason"))
+            if isinstance(run_s, int | float) and np.isfinite(run_s):
+                spacing.run_s = float(run_s)
+            if not local:
+                spacing.corr_s = time.perf_counter() - t0
         CORRECTIONS.inc()
         feedback_dump.record("mapper", "opt", map_id=c.map_id, kfs=len(changed_kfs),
                              base_version=int(c.base_version), stats=dict(c.stats))  # fmt: skip

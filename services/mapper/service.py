@@ -374,6 +374,7 @@ class MapperService:
             settings.mapper.optimize_min_interval_s,
             settle_after_kfs=settings.mapper.settle_after_kfs,
             settle_window_kfs=settings.mapper.settle_window_kfs,
+            local_ba_time_budget_s=settings.optimizer.local_ba_time_budget_s,
         )
         m = settings.mapper
         self.own = Ownership(self.store, m.instance or socket.gethostname(), m.lease_s)
@@ -859,6 +860,7 @@ class MapperService:
 
     def drop_map(self, map_id: str, why: str) -> None:
         dropped = self.registry.drop(map_id)
+        self.collab.forget_agents(h.agent for h in dropped)
         self._routes.clear()
         log.warning("dropped map %s (%s); agents %s", map_id, why,
                     ", ".join(h.agent for h in dropped))  # fmt: skip
