@@ -517,3 +517,36 @@ def test_a_lost_windowed_ba_holds_settling_back_for_its_own_run_time_only(redis_
     timeout = max(c.inflight_timeout_s, 3.0 * global_s)
     assert c.mark_unsettled(sent + timeout - 1.0) == []
     assert c.mark_unsettled(sent + timeout + 1.0) == [map_id]
+
+
+def test_an_older_requests_correction_does_not_let_settling_overtake_a_newer_request(
+    redis_url, world
+):
+    """Two requests of a map out, the older one's run finishes (the optimizer lets it
+    when the map's restarts are spent) and is applied: the newer one is still out, so no
+    settle request may go out yet (the map's newest job wins, and a windowed BA would
+    replace the global run with its loops). Its own correction ends it."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    assert c.due(time.monotonic()) == [(map_id, "merge")]
+    assert c.request(map_id, "merge") is not None
+    older = opt.decode(opt.queue.take(block_s=0.1))
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # unsettled by the older copy
+    c.mark_dirty(map_id, "loop")
+    assert c.due(time.monotonic() + 1e3) == [(map_id, "loop")]
+    assert c.request(map_id, "loop") is not None
+    newer_job = opt.queue.take(block_s=0.1)
+    corr = opt.optimize(older)  # run to the end, as with its restarts spent
+    assert c.on_correction(CorrectionMsg.decode(corr.encode()))
+    assert c.mark_unsettled(time.monotonic()) == []  # the newer request is out
+    newer = opt.handle(newer_job)
+    assert newer is not None and c.on_correction(CorrectionMsg.decode(newer.encode()))
+    _fly_on(svc, sims, gts, "A", "MH01", 1150, 1400)
+    assert c.mark_unsettled(time.monotonic()) == [map_id]

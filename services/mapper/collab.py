@@ -218,8 +218,9 @@ class Collaboration:
         self._window_keep: dict[tuple[str, int], set[int]] = {}
         # agent -> its newest keyframe a correction settled (while its handler is here)
         self._settled: dict[str, int] = {}
-        # map -> when its newest request went out (monotonic) and its reason
-        self._inflight: dict[str, tuple[float, str]] = {}
+        # map -> when its newest request went out (monotonic), its reason and the map
+        # version it copied (only that request's correction ends it)
+        self._inflight: dict[str, tuple[float, str, int]] = {}
         self.inflight_timeout_s = 60.0  # a global job lost (failed, superseded) is given up after
 
     # --- state --------------------------------------------------------------------------
@@ -477,10 +478,9 @@ class Collaboration:
         # global request. Not the global bound: a lost window (its correction dropped on a
         # lossy link) would hold settling back for 60 s or more, where windows take seconds.
         # Plus the map's last global run time, for a window queued behind a global run of
-        # the map still out (an older request's correction clears ``_inflight`` of a newer
-        # one; the optimizer lets a running copy finish once the map's restarts are spent,
-        # ``max_restarts``): given up meanwhile, another window would be sent to replace
-        # one about to run.
+        # the map (the optimizer lets a running copy finish once the map's restarts are
+        # spent, ``max_restarts``): given up meanwhile, another window would be sent to
+        # replace one about to run.
         return global_s + 3.0 * max(self._spacing(map_id, "local").run_s, self.local_budget_s)
 
     def _note_settled(self, map_id: str, kf_gids: np.ndarray) -> None:
@@ -553,7 +553,7 @@ class Collaboration:
         t2 = time.perf_counter()
         sent = spacing.sent = time.monotonic()
         with self._lock:
-            self._inflight[map_id] = (sent, reason)
+            self._inflight[map_id] = (sent, reason, int(req.version))
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
                 del self._snap_poses[k]  # requests long superseded
             for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
@@ -645,7 +645,13 @@ class Collaboration:
                 smap.stop_recording(journal)
             self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         with self._lock:
-            self._inflight.pop(c.map_id, None)
+            # Only the newest request's correction ends it: an older one's (a run the
+            # optimizer finished though a newer copy was queued) must not let a settle
+            # request go out while that copy is out, since the newest job of a map wins
+            # and a windowed BA would drop a global run with its loops.
+            out = self._inflight.get(c.map_id)
+            if out is not None and out[2] == int(c.base_version):
+                del self._inflight[c.map_id]
             run_s = c.stats.get("seconds")
             spacing = self._spacing(c.map_id, c.stats.get("reason"))
             if isinstance(run_s, int | float) and np.isfinite(run_s):
