@@ -96,17 +96,21 @@ class PlaceRecognizer:
         self.checkers: dict[tuple[str, str], ConsistencyChecker] = {}
         self.rest: dict[str, int] = {}  # agent -> keyframes still to rest
         self.merged_into: dict[str, str] = {}
+        self.merge_S: dict[str, tuple[str, np.ndarray]] = {}  # DIAG
+        self._confirm_counts: list[int] = []  # DIAG
         self.last = QueryTiming()
 
     # --- bookkeeping -------------------------------------------------------------------
     def resolve(self, map_id: str) -> str:
         return resolve_map(self.merged_into, map_id)
 
-    def on_merged(self, source: str, target: str) -> int:
+    def on_merged(self, source: str, target: str, S_t_s: np.ndarray | None = None) -> int:
         """Map ``source`` is now part of ``target``."""
         if source == target:
             return 0
         self.merged_into[source] = target
+        if S_t_s is not None:
+            self.merge_S[source] = (target, np.asarray(S_t_s, np.float64))
         n = self.db.relabel_map(source, self.resolve(target))
         for k in self.kfs.values():
             if k.data.map_id == source:
@@ -210,6 +214,7 @@ class PlaceRecognizer:
                     log.debug("candidate %d for %d rejected: %s", c, g, res.reason)
                     continue
                 checked, confirmed = self.confirm_in_neighbours(g, res.S_q_c, c, nb)
+                self._diag(g, c, ev, res, nb, checked, confirmed, acc is queries[-1])
                 if confirmed < min(self.p.confirm_min, checked):
                     log.info("candidate %d for %d: Sim(3) holds in %d of %d neighbours of the "
                              "query; rejected", c, g, confirmed, checked)  # fmt: skip
@@ -231,6 +236,49 @@ class PlaceRecognizer:
         self.last = timing
         return out
 
+    def _to_root(self, frame: str, T: np.ndarray) -> np.ndarray | None:  # DIAG
+        M = np.asarray(T, np.float64)
+        seen = 0
+        while frame in self.merged_into and seen < 50:
+            if frame not in self.merge_S:
+                return None
+            frame, S = self.merge_S[frame]
+            M = S @ M
+            seen += 1
+        return M
+
+    def _diag(self, g, c, ev, res, nb, checked, confirmed, is_loop) -> None:  # DIAG
+        try:
+            kq, kc = self.kfs[g], self.kfs[c]
+            covq = self.covisible(g)
+            same_q = sum(1 for n in covq if n in self.kfs and self.kfs[n].frame == kq.frame)
+            covc = self.covisible(c)
+            same_c = sum(1 for n in covc if n in self.kfs and self.kfs[n].frame == kc.frame)
+            dr = dt = float("nan")
+            A, B = self._to_root(kq.frame, kq.T_m_kf), self._to_root(kc.frame, kc.T_m_kf)
+            if A is not None and B is not None and self.resolve(kq.frame) == self.resolve(kc.frame):
+                M = np.linalg.inv(A) @ B  # q <- c from the maps' estimates
+                sM = np.cbrt(np.linalg.det(M[:3, :3]))
+                Rm = M[:3, :3] / sM
+                Sq = np.asarray(res.S_q_c)
+                sS = np.cbrt(np.linalg.det(Sq[:3, :3]))
+                Rs = Sq[:3, :3] / sS
+                cosr = (np.trace(Rs.T @ Rm) - 1) / 2
+                dr = float(np.degrees(np.arccos(np.clip(cosr, -1, 1))))
+                tm, ts = M[:3, 3], Sq[:3, 3]
+                dt = float(np.linalg.norm(tm - ts))
+            log.info(
+                "DIAG %s q=%s:%d(g%d) c=%s:%d(g%d) stats=%s conf=%d/%d counts=%s "
+                "covq=%d same=%d covc=%d same=%d nb=%d qframe=%s cframe=%s map_vs_S rot=%.1fdeg "
+                "dt=%.3f |t|=%.3f",
+                "loop" if is_loop else "merge", ev.agent, ev.kf_id, g, kc.data.agent, kc.kf_id, c,
+                {k: (round(v, 3) if isinstance(v, float) else v) for k, v in res.stats.items()},
+                confirmed, checked, self._confirm_counts, len(covq), same_q, len(covc), same_c,
+                len(nb), kq.frame, kc.frame, dr, dt, float(np.linalg.norm(np.asarray(res.S_q_c)[:3, 3])),
+            )  # fmt: skip
+        except Exception as e:  # noqa: BLE001
+            log.info("DIAG failed: %s", e)
+
     def confirm_in_neighbours(
         self, q: int, S_q_c: np.ndarray, c: int, nb: MapPoints | None = None
     ) -> tuple[int, int]:
@@ -244,6 +292,7 @@ class PlaceRecognizer:
         P_q = nb.p_c @ (S_q_c[:3, :3]).T + S_q_c[:3, 3]
         v = self.p.verify
         checked = confirmed = 0
+        self._confirm_counts = []
         for n in self.covisible(q)[: self.p.confirm_neighbours]:
             kn = self.kfs.get(n)
             if kn is None or kn.frame != kq.frame:
@@ -255,6 +304,7 @@ class PlaceRecognizer:
                 v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
             )  # fmt: skip
             checked += 1
+            self._confirm_counts.append(len(pi))
             confirmed += len(pi) >= self.p.confirm_matches
         return checked, confirmed
 
