@@ -204,7 +204,9 @@ class PlaceRecognizer:
         elif resting:
             self.rest[ev.agent] -= 1
         # Register after querying, so a keyframe never finds itself.
-        self.kfs[g] = _Kf(kd, ev.T_m_kf.copy(), map_id, int(ev.kf_id), int(ev.stamp_ns))
+        # The frame is the map the event was sent for: an event of a map merged since
+        # (in flight during the merge) has its pose in the old frame.
+        self.kfs[g] = _Kf(kd, ev.T_m_kf.copy(), ev.map_id, int(ev.kf_id), int(ev.stamp_ns))
         self.db.add(g, map_id, kd.bow)
         self._add_covis(g, ev.covis)
         self.by_agent.setdefault(ev.agent, []).append((int(ev.kf_id), g))
