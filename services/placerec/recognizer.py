@@ -11,7 +11,11 @@ Per registered keyframe (a ``KeyframeEvent`` from the mapper):
 4. geometric verification: BoW-restricted matches, Sim(3) RANSAC on the 3D-3D pairs
    (monocular maps differ in scale), guided matching of the candidate's covisible
    neighbourhood and a robust refinement (``verify.verify``);
-5. a verified candidate becomes a ``Match`` with its Sim(3) and matched point pairs.
+5. the Sim(3) must hold in keyframes around the pair (``confirm``: the query's covisible
+   keyframes, the candidate's when the query has too few registered), and a loop's
+   rotation must agree with the map's own estimate of the pair within
+   ``loop_max_rotation_deg`` (a loop corrects drift, not tens of degrees);
+6. a verified candidate becomes a ``Match`` with its Sim(3) and matched point pairs.
 
 The recognizer keeps its own copy of what it needs of each keyframe (descriptors,
 points in the keyframe's camera frame, its pose at registration for neighbourhood
@@ -103,9 +107,8 @@ class PlaceRecognizer:
         self.checkers: dict[tuple[str, str], ConsistencyChecker] = {}
         self.rest: dict[str, int] = {}  # agent -> keyframes still to rest
         self.merged_into: dict[str, str] = {}
-        self.merge_S: dict[str, tuple[str, np.ndarray]] = {}  # DIAG
-        self._confirm_counts: list[int] = []  # DIAG
-        self._confirm_counts_c: list[int] = []  # DIAG
+        # map -> (the map it merged into, the Sim(3) that carried its frame there)
+        self.merge_S: dict[str, tuple[str, np.ndarray]] = {}
         self.last = QueryTiming()
 
     # --- bookkeeping -------------------------------------------------------------------
@@ -223,15 +226,14 @@ class PlaceRecognizer:
                 if not res.accepted:
                     log.debug("candidate %d for %d rejected: %s", c, g, res.reason)
                     continue
-                ok, views = self.confirm(g, res.S_q_c, c, nb)
                 dev = self.loop_rotation_deviation(g, res.S_q_c, c) if kind == "loop" else None
-                self._diag(g, c, ev, res, nb, views, kind == "loop", dev)
                 if (dev is not None and self.p.loop_max_rotation_deg > 0
                         and dev > self.p.loop_max_rotation_deg):  # fmt: skip
                     log.info("loop candidate %d for %d: Sim(3) rotation %.1f degrees from the "
                              "map's estimate of the pair (> %.1f); rejected", c, g, dev,
                              self.p.loop_max_rotation_deg)  # fmt: skip
                     continue
+                ok, views = self.confirm(g, res.S_q_c, c, nb)
                 if not ok:
                     log.info("candidate %d for %d: Sim(3) holds in %d of %d neighbours of the "
                              "query and %d of %d of the candidate; rejected", c, g, views[1],
@@ -284,33 +286,6 @@ class PlaceRecognizer:
         R_s = S[:3, :3] / np.cbrt(np.linalg.det(S[:3, :3]))
         return float(np.degrees(rotation_angle(R_s.T @ R_m)))
 
-    def _diag(self, g, c, ev, res, nb, views, is_loop, dev) -> None:  # DIAG
-        try:
-            kq, kc = self.kfs[g], self.kfs[c]
-            covq = self.covisible(g)
-            same_q = sum(1 for n in covq if n in self.kfs and self.kfs[n].frame == kq.frame)
-            covc = self.covisible(c)
-            same_c = sum(1 for n in covc if n in self.kfs and self.kfs[n].frame == kc.frame)
-            dr = dt = float("nan")
-            A, B = self.pose_in_map(g), self.pose_in_map(c)
-            if A is not None and B is not None and self.resolve(kq.frame) == self.resolve(kc.frame):
-                M = np.linalg.inv(A) @ B  # q <- c from the maps' estimates
-                dr = float("nan") if dev is None else dev
-                dt = float(np.linalg.norm(M[:3, 3] - np.asarray(res.S_q_c)[:3, 3]))
-            log.info(
-                "DIAG %s q=%s:%d(g%d) c=%s:%d(g%d) stats=%s views=%s counts=%s/%s "
-                "covq=%d same=%d covc=%d same=%d nb=%d qframe=%s cframe=%s map_vs_S rot=%.1fdeg "
-                "dt=%.3f |t|=%.3f",
-                "loop" if is_loop else "merge", ev.agent, ev.kf_id, g, kc.data.agent, kc.kf_id, c,
-                {k: (round(v, 3) if isinstance(v, float) else v) for k, v in res.stats.items()},
-                views, self._confirm_counts, self._confirm_counts_c, len(covq), same_q, len(covc),
-                same_c,
-                len(nb), kq.frame, kc.frame, dr, dt,
-                float(np.linalg.norm(np.asarray(res.S_q_c)[:3, 3])),
-            )  # fmt: skip
-        except Exception as e:  # noqa: BLE001
-            log.info("DIAG failed: %s", e)
-
     def confirm(
         self, q: int, S_q_c: np.ndarray, c: int, nb: MapPoints | None = None
     ) -> tuple[bool, tuple[int, int, int, int]]:
@@ -326,7 +301,6 @@ class PlaceRecognizer:
         and one view is where a wrong Sim(3) can fit. A neighbour of the query that
         disagrees rejects."""
         need = self.p.confirm_min
-        self._confirm_counts_c = []
         qc, qf = self.confirm_in_neighbours(q, S_q_c, c, nb)
         if qc >= need:
             return qf >= need, (qc, qf, 0, 0)
@@ -343,7 +317,6 @@ class PlaceRecognizer:
         (the mirror of ``confirm_in_neighbours``); stops after ``enough`` confirmations."""
         kc = self.kfs[c]
         nb = self.neighbourhood(q)
-        self._confirm_counts_c = []
         if len(nb) == 0:
             return 0, 0
         S = np.asarray(S_q_c, np.float64)
@@ -363,7 +336,6 @@ class PlaceRecognizer:
                 v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
             )  # fmt: skip
             checked += 1
-            self._confirm_counts_c.append(len(pi))
             confirmed += len(pi) >= self.p.confirm_matches
             if enough is not None and confirmed >= enough:
                 break
@@ -382,7 +354,6 @@ class PlaceRecognizer:
         P_q = nb.p_c @ (S_q_c[:3, :3]).T + S_q_c[:3, 3]
         v = self.p.verify
         checked = confirmed = 0
-        self._confirm_counts = []
         for n in self.covisible(q)[: self.p.confirm_neighbours]:
             kn = self.kfs.get(n)
             if kn is None or kn.frame != kq.frame:
@@ -394,7 +365,6 @@ class PlaceRecognizer:
                 v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
             )  # fmt: skip
             checked += 1
-            self._confirm_counts.append(len(pi))
             confirmed += len(pi) >= self.p.confirm_matches
         return checked, confirmed
 
