@@ -73,7 +73,7 @@ class PlacerecService:
                 REJECTED.labels(SERVICE, key, "invalid").inc()
                 log.warning("rejected merge note on %s: %s", key, e)
                 return []
-            n = self.rec.on_merged(m.source, m.target)
+            n = self.rec.on_merged(m.source, m.target, m.S_t_s)
             log.info("map %s merged into %s: %d keyframes relabelled", m.source, m.target, n)
             return []
         try:
