@@ -151,6 +151,12 @@ class CommStats:
     batches_shed: int = 0  # batches the server NACKed (overload)
     ack_latencies: list[float] = field(default_factory=list)
     ack_sent_at: list[float] = field(default_factory=list)  # first send of each, monotonic
+    ack_attempts: list[int] = field(default_factory=list)  # sends each acked keyframe took
+    # Diagnostics (issue 18 item 6): a sample of the sending state about once a second,
+    # ("s", t, window, in flight, queued kfs, unacked kfs, held, urgent, rto, backoff,
+    # queued mps, kf updates, mp updates), and events ("to", t, kf, attempts, its
+    # timeout) per keyframe timeout, ("cut", t, window) per window cut.
+    trace: list = field(default_factory=list)
 
 
 class CommModule:
@@ -192,6 +198,7 @@ class CommModule:
         self._backoff = 1.0  # carried from the last timeout to first sends (Karn)
         self._last_ack_t = -1e18
         self._last_probe = -1e18
+        self._last_sample = -1e18
         self._hold_until = -1e18  # no keyframe goes out before (a NACK's retry-after)
         self._shed_streak = 0  # holds in a row that ended in a NACK again
         self.shed_backoff_max_s = shed_backoff_max_s
@@ -271,6 +278,21 @@ class CommModule:
             self._last_cut = now
             self.window = max(float(self.window_min), self.window / 2)
             self.stats.window_cuts += 1
+            self._trace(("cut", round(now, 3), self.window))
+
+    def _trace(self, e: tuple) -> None:
+        if len(self.stats.trace) < 20_000:  # bounded: an agent may fly for hours
+            self.stats.trace.append(e)
+
+    def _sample(self, now: float) -> None:
+        if now - self._last_sample < 1.0:
+            return
+        self._last_sample = now
+        self._trace(("s", round(now, 3), round(self.window, 2), self.in_flight,
+                                 len(self.queued_kfs), len(self.kfs), len(self.held),
+                                 len(self.urgent), round(self.rto, 3), self._backoff,
+                                 len(self.queued_mps), len(self.kf_updates),
+                                 len(self.mp_updates)))  # fmt: skip
 
     @property
     def reorder_s(self) -> float:
@@ -406,6 +428,7 @@ class CommModule:
                 if t0 is not None:
                     lat.append(now - t0)
                     self.stats.ack_sent_at.append(t0)
+                    self.stats.ack_attempts.append(self.attempts.get(i, 0))
                     sent = self.sent_kfs.get(i)
                     # Karn: a resent item's latency mixes up its sends; a held one's
                     # includes waiting for another keyframe.
@@ -518,8 +541,11 @@ class CommModule:
 
     def check_timeouts(self, now: float) -> int:
         n = 0
+        self._sample(now)
         for i, s in list(self.sent_kfs.items()):
             if now - s.t > s.timeout:
+                self._trace(("to", round(now, 3), i, self.attempts.get(i, 1),
+                                         round(s.timeout, 3)))  # fmt: skip
                 self._backoff = min(max(self._backoff, 2.0 ** self.attempts.get(i, 1)),
                                     self.backoff_max_s / self.resend_timeout_s)  # fmt: skip
                 # A loaded server sheds what waited too long and acknowledges nothing
