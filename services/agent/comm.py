@@ -725,10 +725,15 @@ class CommModule:
         is unanswered for twice the ack latency and nothing else goes out (TCP's tail
         loss probe): its answer shows the server answers, so what went before it
         unanswered was lost on the way, and its timeout is no congestion signal (see
-        ``check_timeouts``). At most two in a row."""
+        ``check_timeouts``). At most two in a row, and only while acks come within
+        ``ack_target_s`` (a server that answers late has a queue a probe would add to:
+        48 agents' probes cost the simulated one of tests/test_overload_scale.py without
+        shedding ~10 s of drain)."""
         newest = self.seq - 1
         if newest < 0 or self._answered >= newest or self._probes >= 2 or self.srtt is None:
             return None
+        if self.srtt > self.ack_target_s:
+            return None  # a slow server: late acks, not loss (no load on its queue)
         if not (self.sent_kfs or self.sent_mps):  # (any answer shows lost updates)
             return None
         pto = min(max(2 * self.srtt, 2 * self.min_interval), self.rto / 2)
