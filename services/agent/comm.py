@@ -12,19 +12,31 @@ An overloaded server must not be buried under resends (a fixed 2 s timeout made 
 agents send 3-7x their data when acks took longer than that). So, as TCP does:
 - the resend timeout follows the measured ack latency (``srtt + 4 rttvar``, never
   below ``resend_timeout_s``; only first sends are timed, Karn's rule), and doubles
-  with each resend of the same item up to ``backoff_max_s``, with +-``jitter`` so
-  agents that lost the server together do not come back in step;
+  with each timeout in silence of the same item up to ``backoff_max_s``, with
+  +-``jitter`` so agents that lost the server together do not come back in step;
 - at most ``window`` keyframes are in flight unacknowledged. The window grows by one
   per ack that came back within ``ack_target_s`` and halves (at most once per round
   trip) on one that did not: a slow server slows its agents' sending, and the backlog
   waits in the agents' buffers (CCM-SLAM §4.5) instead of in the server's queue,
-  which keeps the latency of what the server accepts bounded. A timeout halves it too
-  (an overloaded mapper sheds batches unacknowledged). Keyframes the server
-  holds (waiting for a predecessor) or asks for again are outside the window, so a
-  hole can always be filled, and while the server says nothing for a timeout one
-  keyframe probes past a full window. It never goes below ``window_min``: on a lossy
-  radio link (timeouts without overload) a small window with prompt acks still carries
-  tens of keyframes a second.
+  which keeps the latency of what the server accepts bounded. A timeout in silence
+  halves it too. Keyframes the server holds (waiting for a predecessor) or asks for
+  again are outside the window, so a hole can always be filled, and while the server
+  says nothing for a timeout one keyframe probes past a full window. It never goes
+  below ``window_min``.
+
+Loss is no congestion (issue 18 item 6). Backoff and the window cut answer a server
+that is slow or gone, i.e. a timeout in silence. A timeout of an item whose batch got
+no answer while a batch sent after it did (``_answered``) is a loss on the way: the
+item goes again at the same timeout, and neither the backoff (its own, or the one
+carried to first sends) nor the window changes. An overloaded server does not look like
+this: it NACKs what it sheds, and a slow one answers in order, so nothing later is
+answered first. Before, on a 50 % lossy link every such timeout doubled the timeouts
+and halved the window to 2, whose two keyframes, both lost, then stalled the agent for
+timeout after timeout while the server answered its update batches at once (team3:
+13-21 stalls of over 4 s without an ack per agent; ack p95 8-14 s, one agent with 57
+keyframes unacked after its flush). So that a lone batch at the tail (nothing sent after
+it) is told from silence too, an empty batch follows it once it is unanswered for
+twice the ack latency (TCP's tail loss probe, at most two in a row).
 
 An overloaded mapper sheds batches that waited too long in its queue and says so: a
 NACK (an ``Ack`` of that batch with ``retry_after_s``). Everything the batch carried goes
@@ -149,8 +161,15 @@ class CommStats:
     kf_dropped_unacked: int = 0
     window_cuts: int = 0  # times the window halved on a late ack
     batches_shed: int = 0  # batches the server NACKed (overload)
+    probes: int = 0  # empty batches sent to learn whether the server answers
     ack_latencies: list[float] = field(default_factory=list)
     ack_sent_at: list[float] = field(default_factory=list)  # first send of each, monotonic
+    ack_attempts: list[int] = field(default_factory=list)  # sends each acked keyframe took
+    # Diagnostics (issue 18 item 6): a sample of the sending state about once a second,
+    # ("s", t, window, in flight, queued kfs, unacked kfs, held, urgent, rto, backoff,
+    # queued mps, kf updates, mp updates), and events ("to", t, kf, attempts, its
+    # timeout) per keyframe timeout, ("cut", t, window) per window cut.
+    trace: list = field(default_factory=list)
 
 
 class CommModule:
@@ -192,11 +211,17 @@ class CommModule:
         self._backoff = 1.0  # carried from the last timeout to first sends (Karn)
         self._last_ack_t = -1e18
         self._last_probe = -1e18
+        self._last_sample = -1e18
         self._hold_until = -1e18  # no keyframe goes out before (a NACK's retry-after)
         self._shed_streak = 0  # holds in a row that ended in a NACK again
         self.shed_backoff_max_s = shed_backoff_max_s
         self.attempts: dict[int, int] = {}  # keyframe id -> sends so far (unacked ones)
-        self._mp_attempts: dict[int, int] = {}
+        # Timeouts in silence (no later batch answered) so far, per unacked keyframe /
+        # map point: the exponent of its resend timeout's backoff.
+        self._silent: dict[int, int] = {}
+        self._mp_silent: dict[int, int] = {}
+        self._answered = -1  # the newest batch the server answered (not a NACK)
+        self._probes = 0  # empty probe batches sent since the last answer or data batch
         self.held: set[int] = set()  # sent keyframes the server said it holds
         self.urgent: set[int] = set()  # asked for again by the server: not windowed
         self.seq = 0
@@ -271,6 +296,21 @@ class CommModule:
             self._last_cut = now
             self.window = max(float(self.window_min), self.window / 2)
             self.stats.window_cuts += 1
+            self._trace(("cut", round(now, 3), self.window))
+
+    def _trace(self, e: tuple) -> None:
+        if len(self.stats.trace) < 20_000:  # bounded: an agent may fly for hours
+            self.stats.trace.append(e)
+
+    def _sample(self, now: float) -> None:
+        if now - self._last_sample < 1.0:
+            return
+        self._last_sample = now
+        self._trace(("s", round(now, 3), round(self.window, 2), self.in_flight,
+                                 len(self.queued_kfs), len(self.kfs), len(self.held),
+                                 len(self.urgent), round(self.rto, 3), self._backoff,
+                                 len(self.queued_mps), len(self.kf_updates),
+                                 len(self.mp_updates)))  # fmt: skip
 
     @property
     def reorder_s(self) -> float:
@@ -358,6 +398,7 @@ class CommModule:
             self.forgotten.add(kf_id)
         self.sent_kfs.pop(kf_id, None)
         self.attempts.pop(kf_id, None)
+        self._silent.pop(kf_id, None)
         self.held.discard(kf_id)
         self.urgent.discard(kf_id)
         i = bisect.bisect_left(self.queued_kfs, kf_id)
@@ -367,7 +408,7 @@ class CommModule:
         self._upd_kf_sent.pop(kf_id)
 
     def forget_map_point(self, mp_id: int) -> None:
-        self._mp_attempts.pop(mp_id, None)
+        self._mp_silent.pop(mp_id, None)
         self.mps.pop(mp_id, None)
         self._after_ack.pop(mp_id, None)
         self.queued_mps.discard(mp_id)
@@ -406,6 +447,7 @@ class CommModule:
                 if t0 is not None:
                     lat.append(now - t0)
                     self.stats.ack_sent_at.append(t0)
+                    self.stats.ack_attempts.append(self.attempts.get(i, 0))
                     sent = self.sent_kfs.get(i)
                     # Karn: a resent item's latency mixes up its sends; a held one's
                     # includes waiting for another keyframe.
@@ -414,6 +456,7 @@ class CommModule:
             self.sent_kfs.pop(i, None)
             self._last_seq_by_kf.pop(i, None)
             self.attempts.pop(i, None)
+            self._silent.pop(i, None)
             self.held.discard(i)
             self.urgent.discard(i)
             self.acked_kfs.add(i)
@@ -424,7 +467,7 @@ class CommModule:
                 self.mp_updates[i] = upd
             self._unsend_mp(i)
             self.queued_mps.discard(i)
-            self._mp_attempts.pop(i, None)
+            self._mp_silent.pop(i, None)
         held = set() if ack.held_kf_ids is None else set(ack.held_kf_ids.tolist())
         if held:
             # Received and waiting on the server: not lost, so no timeout resend.
@@ -462,6 +505,9 @@ class CommModule:
             # prune from the front instead of scanning every entry on each ack.
             while self._seq_t and (q := next(iter(self._seq_t))) < answered - 10_000:
                 del self._seq_t[q]
+        if ack.seq > self._answered:
+            self._answered = ack.seq
+        self._probes = 0
         self._on_update_ack(ack.seq)
         self.stats.ack_latencies.extend(lat)
         return lat
@@ -518,9 +564,21 @@ class CommModule:
 
     def check_timeouts(self, now: float) -> int:
         n = 0
+        self._sample(now)
         for i, s in list(self.sent_kfs.items()):
             if now - s.t > s.timeout:
-                self._backoff = min(max(self._backoff, 2.0 ** self.attempts.get(i, 1)),
+                lost = self._lost_before(s.seq, self._answered)
+                self._trace(("to", round(now, 3), i, self.attempts.get(i, 1),
+                             round(s.timeout, 3), lost))  # fmt: skip
+                if lost:
+                    # The server answered a later batch: this one was lost on the way
+                    # (a lossy link), not left unanswered by a server that is slow or
+                    # gone. Resent at the same timeout, and no congestion signal.
+                    self._requeue_kf(i, "lost")
+                    n += 1
+                    continue
+                k = self._silent[i] = self._silent.get(i, 0) + 1
+                self._backoff = min(max(self._backoff, 2.0**k),
                                     self.backoff_max_s / self.resend_timeout_s)  # fmt: skip
                 # A loaded server sheds what waited too long and acknowledges nothing
                 # of it: no late ack to measure, so the timeout is the signal.
@@ -529,7 +587,11 @@ class CommModule:
                 n += 1
         for i, s in list(self.sent_mps.items()):
             if now - s.t > s.timeout and not self._waits_for_kf(i):
-                self._requeue_mp(i, "timeout")
+                if self._lost_before(s.seq, self._answered):
+                    self._requeue_mp(i, "lost")
+                else:
+                    self._mp_silent[i] = self._mp_silent.get(i, 0) + 1
+                    self._requeue_mp(i, "timeout")
                 n += 1
         for seq, s in list(self._upd_msgs.items()):
             if now - s.t > s.timeout:
@@ -573,7 +635,7 @@ class CommModule:
     def next_message(self, now: float, now_ns: int, kf_ref: int) -> KeyframeBatch | None:
         """The next batch if one is due, within the size cap."""
         if not self.due(now):
-            return None
+            return self._tail_probe(now, now_ns, kf_ref)
         budget = self.max_msg_bytes
         seq = self.seq
         new_kfs: list[NewKeyframe] = []
@@ -613,8 +675,8 @@ class CommModule:
             self.stats.kf_resent += resend
             self.stats.kf_sent += 1
             self.first_sent_at.setdefault(kf.id, now)
-            n = self.attempts[kf.id] = self.attempts.get(kf.id, 0) + 1
-            self.sent_kfs[kf.id] = _Sent(now, seq, self._timeout(n))
+            self.attempts[kf.id] = self.attempts.get(kf.id, 0) + 1
+            self.sent_kfs[kf.id] = _Sent(now, seq, self._timeout(1 + self._silent.get(kf.id, 0)))
             self._last_seq_by_kf[kf.id] = seq
         # Map points in id order, as many as fit, once the server has (or gets in this
         # message) the keyframe they hang on: before that they would only wait there,
@@ -626,8 +688,7 @@ class CommModule:
         mp_ids = ready[: max(0, budget // _MP_BYTES)]
         for i in mp_ids:
             self.queued_mps.discard(i)
-            n = self._mp_attempts[i] = self._mp_attempts.get(i, 0) + 1
-            self.sent_mps[i] = _Sent(now, seq, self._timeout(n))
+            self.sent_mps[i] = _Sent(now, seq, self._timeout(1 + self._mp_silent.get(i, 0)))
             self._mps_by_seq.put(i, seq)
         budget -= len(mp_ids) * _MP_BYTES
         new_mps = self._pack_mps(mp_ids)
@@ -648,7 +709,9 @@ class CommModule:
         for i in upd_ids:
             self._upd_mp_sent.put(i, seq, self.mp_updates.pop(i))
         if not (new_kfs or mp_ids or kf_upd or upd_ids):
-            return None  # all of it waits for the window (or its keyframe)
+            # All of it waits for the window (or its keyframe).
+            return self._tail_probe(now, now_ns, kf_ref)
+        self._probes = 0
         if kf_upd or upd_ids:
             self._upd_msgs[seq] = _Sent(now, seq, self._timeout(1))
         self._seq_t[seq] = now
@@ -656,6 +719,34 @@ class CommModule:
         self.last_send = now
         return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd,
                              self.session)  # fmt: skip
+
+    def _tail_probe(self, now: float, now_ns: int, kf_ref: int) -> KeyframeBatch | None:
+        """An empty batch when the newest one, with keyframes or points on their way,
+        is unanswered for twice the ack latency and nothing else goes out (TCP's tail
+        loss probe): its answer shows the server answers, so what went before it
+        unanswered was lost on the way, and its timeout is no congestion signal (see
+        ``check_timeouts``). At most two in a row, and only while acks come within
+        ``ack_target_s`` (a server that answers late has a queue a probe would add to:
+        48 agents' probes cost the simulated one of tests/test_overload_scale.py without
+        shedding ~10 s of drain)."""
+        newest = self.seq - 1
+        if newest < 0 or self._answered >= newest or self._probes >= 2 or self.srtt is None:
+            return None
+        if self.srtt > self.ack_target_s:
+            return None  # a slow server: late acks, not loss (no load on its queue)
+        if not (self.sent_kfs or self.sent_mps):  # (any answer shows lost updates)
+            return None
+        pto = min(max(2 * self.srtt, 2 * self.min_interval), self.rto / 2)
+        if now - max(self.last_send, self._seq_t.get(newest, now)) < pto:
+            return None
+        self._probes += 1
+        self.stats.probes += 1
+        seq = self.seq
+        self._seq_t[seq] = now
+        self.seq += 1
+        self.last_send = now
+        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, [], [], MapPoints.empty(),
+                             MapPoints.empty(), self.session)  # fmt: skip
 
     def record_sent(self, nbytes: int) -> None:
         self.stats.messages += 1

@@ -143,6 +143,10 @@ class AgentStats:
     all_acked: bool = False
     # (seconds since the start of the flight, ack latency) per keyframe.
     ack_series: list = field(default_factory=list)
+    # Diagnostics: sends per acked keyframe, and the communication module's trace
+    # (``CommStats.trace``, times since the start of the flight).
+    ack_attempts: list = field(default_factory=list)
+    comm_trace: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -461,6 +465,8 @@ class AgentLoop:
         s.all_acked = not c.pending
         pairs = zip(c.stats.ack_sent_at, c.stats.ack_latencies, strict=True)
         s.ack_series = [[round(t - t_start, 3), round(x, 4)] for t, x in pairs]
+        s.ack_attempts = list(c.stats.ack_attempts)
+        s.comm_trace = [[e[0], round(e[1] - t_start, 3), *e[2:]] for e in c.stats.trace]
         return s
 
 
