@@ -319,31 +319,13 @@ class PlaceRecognizer:
         """(candidate neighbours checked, confirmed): the query's neighbourhood points
         through S_q_c^-1 and the neighbour's pose relative to c, matched in the neighbour
         (the mirror of ``confirm_in_neighbours``); stops after ``enough`` confirmations."""
-        kc = self.kfs[c]
         nb = self.neighbourhood(q)
         if len(nb) == 0:
             return 0, 0
         S = np.asarray(S_q_c, np.float64)
-        sR = S[:3, :3]
         # p_c = (sR)^-1 (p_q - t)
-        P_c = np.linalg.solve(sR, (nb.p_c - S[:3, 3]).T).T
-        v = self.p.verify
-        checked = confirmed = 0
-        for n in self.covisible(c)[: self.p.confirm_neighbours]:
-            kn = self.kfs.get(n)
-            if kn is None or kn.frame != kc.frame or n == q:
-                continue
-            T_n_c = se3_inv(kn.T_m_kf) @ kc.T_m_kf
-            P_n = P_c @ T_n_c[:3, :3].T + T_n_c[:3, 3]
-            pi, _, _ = match_projected(
-                P_n, nb.descriptors, None, None, kn.data, np.ones(len(kn.data), bool),
-                v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
-            )  # fmt: skip
-            checked += 1
-            confirmed += len(pi) >= self.p.confirm_matches
-            if enough is not None and confirmed >= enough:
-                break
-        return checked, confirmed
+        P_c = np.linalg.solve(S[:3, :3], (nb.p_c - S[:3, 3]).T).T
+        return self._confirm_views(c, P_c, nb.descriptors, skip=q, enough=enough)
 
     def confirm_in_neighbours(
         self, q: int, S_q_c: np.ndarray, c: int, nb: MapPoints | None = None
@@ -351,25 +333,41 @@ class PlaceRecognizer:
         """(neighbours checked, neighbours where the candidate's points projected
         through S_q_c and the neighbour's pose relative to q find enough matches);
         ``nb``: ``neighbourhood(c)`` when the caller has it already."""
-        kq = self.kfs[q]
         nb = self.neighbourhood(c) if nb is None else nb
         if len(nb) == 0:
             return 0, 0
         P_q = nb.p_c @ (S_q_c[:3, :3]).T + S_q_c[:3, 3]
+        return self._confirm_views(q, P_q, nb.descriptors)
+
+    def _confirm_views(
+        self,
+        ref: int,
+        P_ref: np.ndarray,
+        descriptors: np.ndarray,
+        skip: int | None = None,
+        enough: int | None = None,
+    ) -> tuple[int, int]:
+        """(covisible keyframes of ``ref`` checked, confirmed): points ``P_ref`` in ref's
+        camera, with their descriptors, projected into each of ref's covisible keyframes
+        of its frame (``skip`` excepted) must find ``confirm_matches`` matches there;
+        stops after ``enough`` confirmations."""
+        kr = self.kfs[ref]
         v = self.p.verify
         checked = confirmed = 0
-        for n in self.covisible(q)[: self.p.confirm_neighbours]:
+        for n in self.covisible(ref)[: self.p.confirm_neighbours]:
             kn = self.kfs.get(n)
-            if kn is None or kn.frame != kq.frame:
+            if kn is None or kn.frame != kr.frame or n == skip:
                 continue
-            T_n_q = se3_inv(kn.T_m_kf) @ kq.T_m_kf
-            P_n = P_q @ T_n_q[:3, :3].T + T_n_q[:3, 3]
+            T_n_r = se3_inv(kn.T_m_kf) @ kr.T_m_kf
+            P_n = P_ref @ T_n_r[:3, :3].T + T_n_r[:3, 3]
             pi, _, _ = match_projected(
-                P_n, nb.descriptors, None, None, kn.data, np.ones(len(kn.data), bool),
+                P_n, descriptors, None, None, kn.data, np.ones(len(kn.data), bool),
                 v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
             )  # fmt: skip
             checked += 1
             confirmed += len(pi) >= self.p.confirm_matches
+            if enough is not None and confirmed >= enough:
+                break
         return checked, confirmed
 
     def db_score(self, kd: KeyframeData, c: int) -> float:
