@@ -46,6 +46,19 @@ def keyframes():
     return out
 
 
+def _deliver(wire: list, h, comm: CommModule, t: float, ack_lag: float) -> None:
+    """The batches on ``wire`` due by ``t`` ingested by the handler ``h``, each answered
+    ``ack_lag`` later with what it stored, held and misses."""
+    while wire and wire[0][0] <= t:
+        b = KeyframeBatch.decode(heapq.heappop(wire)[2])
+        res = h.ingest(b, t)
+        held, missing = h.blocked()
+        comm.on_ack(Ack("A", "m", np.array(res.ack_kf_ids, np.int64),
+                        np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
+                        np.array(held, np.int64), np.array(missing, np.int64), b.seq),
+                    t + ack_lag)  # fmt: skip
+
+
 def _indexed(comm: CommModule) -> bool:
     """The communication module's by-message indexes of what is in flight name exactly
     the items in flight, each under the message that carries it."""
@@ -108,14 +121,7 @@ def _fly(keyframes, drop=0.0, delay=0.0, jitter=0.0, seed=0):
             lag = max(delay + rng.uniform(-jitter, jitter), 0.0)
             heapq.heappush(wire, (t + lag, order, m.encode()))
             order += 1
-        while wire and wire[0][0] <= t:
-            b = KeyframeBatch.decode(heapq.heappop(wire)[2])
-            res = h.ingest(b, t)
-            held, missing = h.blocked()
-            comm.on_ack(Ack("A", "m", np.array(res.ack_kf_ids, np.int64),
-                            np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
-                            np.array(held, np.int64), np.array(missing, np.int64), b.seq),
-                        t + 0.01)  # fmt: skip
+        _deliver(wire, h, comm, t, ack_lag=0.01)
         t = round(t + 0.05, 2)
     return h, est, comm
 
@@ -203,14 +209,7 @@ def _fly_prompt_server(keyframes, drop: float, seed: int, flush_s: float = 30.0)
         if m is not None and rng.random() >= drop:
             heapq.heappush(wire, (t + 0.05, order, m.encode()))
             order += 1
-        while wire and wire[0][0] <= t:
-            b = KeyframeBatch.decode(heapq.heappop(wire)[2])
-            res = h.ingest(b, t)
-            held, missing = h.blocked()
-            comm.on_ack(Ack("A", "m", np.array(res.ack_kf_ids, np.int64),
-                            np.array(res.ack_mp_ids, np.int64), h.kf_high, 0,
-                            np.array(held, np.int64), np.array(missing, np.int64), b.seq),
-                        t + 0.05)  # fmt: skip
+        _deliver(wire, h, comm, t, ack_lag=0.05)
         t = round(t + 0.01, 2)
     return comm, None
 
