@@ -191,6 +191,21 @@ def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
     return gts, sims
 
 
+def _merged_with_optimizer(redis_url, world):
+    """A and B (``_two_noisy_agents``) merged by a true match, requests unspaced, and an
+    optimizer on the same Redis: (settings, mapper, ground truths, simulated agents,
+    the merged map, optimizer)."""
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    return settings, svc, gts, sims, svc.handlers["A"].map_id, opt
+
+
 def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     """Merge two noisy agents, ask for an optimization, run it, apply the correction:
     invariants hold, Redis follows, and the joint error does not grow."""
@@ -388,16 +403,9 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     the window's keyframes come out settled (its newest is what the frame correction is
     fitted on) and no further from the truth than registration had put them; it is
     spaced by its own run time, not the global BA's."""
-    settings = Settings(redis_url=redis_url)
-    svc = MapperService(settings)
+    settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
     c = svc.collab
-    c.min_interval = 0.0
-    gts, sims = _two_noisy_agents(svc, world)
-    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
-    map_id = svc.handlers["A"].map_id
     ha = svc.handlers["A"]
-    opt = OptimizerService(settings)
-    opt.queue.ensure_group()
 
     def run_one():
         job = opt.queue.take(block_s=0.1)
@@ -475,15 +483,8 @@ def test_a_lost_windowed_ba_holds_settling_back_for_its_own_run_time_only(redis_
     run it may have queued behind), not after the minute a global request gets: the next
     settle mark comes within seconds. A lost global request still holds it back for
     ``inflight_timeout_s``."""
-    settings = Settings(redis_url=redis_url)
-    svc = MapperService(settings)
+    settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
     c = svc.collab
-    c.min_interval = 0.0
-    gts, sims = _two_noisy_agents(svc, world)
-    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
-    map_id = svc.handlers["A"].map_id
-    opt = OptimizerService(settings)
-    opt.queue.ensure_group()
     assert c.due(time.monotonic()) == [(map_id, "merge")]
     c.request(map_id, "merge")
     _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
@@ -526,15 +527,8 @@ def test_an_older_requests_correction_does_not_let_settling_overtake_a_newer_req
     when the map's restarts are spent) and is applied: the newer one is still out, so no
     settle request may go out yet (the map's newest job wins, and a windowed BA would
     replace the global run with its loops). Its own correction ends it."""
-    settings = Settings(redis_url=redis_url)
-    svc = MapperService(settings)
+    settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
     c = svc.collab
-    c.min_interval = 0.0
-    gts, sims = _two_noisy_agents(svc, world)
-    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
-    map_id = svc.handlers["A"].map_id
-    opt = OptimizerService(settings)
-    opt.queue.ensure_group()
     assert c.due(time.monotonic()) == [(map_id, "merge")]
     assert c.request(map_id, "merge") is not None
     older = opt.decode(opt.queue.take(block_s=0.1))
