@@ -715,11 +715,7 @@ class CommModule:
         self._probes = 0
         if kf_upd or upd_ids:
             self._upd_msgs[seq] = _Sent(now, seq, self._timeout(1))
-        self._seq_t[seq] = now
-        self.seq += 1
-        self.last_send = now
-        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd,
-                             self.session)  # fmt: skip
+        return self._emit(now, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd)
 
     def _tail_probe(self, now: float, now_ns: int, kf_ref: int) -> KeyframeBatch | None:
         """An empty batch when the newest one, with keyframes or points on their way,
@@ -742,12 +738,18 @@ class CommModule:
             return None
         self._probes += 1
         self.stats.probes += 1
+        return self._emit(now, now_ns, kf_ref, [], [], MapPoints.empty(), MapPoints.empty())
+
+    def _emit(self, now: float, now_ns: int, kf_ref: int, new_kfs: list, kf_upd: list,
+              new_mps: MapPoints, mp_upd: MapPoints) -> KeyframeBatch:  # fmt: skip
+        """The batch numbered ``self.seq``, sent now (its send time kept for loss and
+        reordering judgements)."""
         seq = self.seq
         self._seq_t[seq] = now
         self.seq += 1
         self.last_send = now
-        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, [], [], MapPoints.empty(),
-                             MapPoints.empty(), self.session)  # fmt: skip
+        return KeyframeBatch(self.agent, seq, now_ns, kf_ref, new_kfs, kf_upd, new_mps, mp_upd,
+                             self.session)  # fmt: skip
 
     def record_sent(self, nbytes: int) -> None:
         self.stats.messages += 1
