@@ -79,7 +79,11 @@ class Up:
             f"http://127.0.0.1:{self.api}{path}",
             headers={"Authorization": "Bearer supervised-token"},
         )
-        with urllib.request.urlopen(req, timeout=5) as r:
+        # Generous: one read stalled past 5 s in CI right after a flight (not reproduced
+        # here: 370 reads during and after the same flight, slowest 0.17 s; Redis there
+        # fsyncs its AOF every second to a shared disk). What is checked is what the API
+        # serves, not how fast.
+        with urllib.request.urlopen(req, timeout=20) as r:
             return json.loads(r.read())
 
     def children(self) -> dict[str, int]:
