@@ -165,7 +165,8 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
 
 def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):
     """A map another mapper took over takes its agents' handlers with it
-    (``MapRegistry.drop``), and what a correction had settled of them here goes too."""
+    (``MapRegistry.drop``), and what a correction had settled of them here goes too,
+    with what was pending for the map."""
     from types import SimpleNamespace
 
     svc = MapperService(Settings(redis_url=redis_url))
@@ -174,9 +175,14 @@ def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):
         reg.ensure_map(map_id)
         reg.add_handler(SimpleNamespace(agent=agent, map_id=map_id))
         c._settled[agent] = 7
+        c.mark_dirty(map_id, "loop")
+        c._inflight[map_id] = (0.0, "loop", 3)
+        c._spacing(map_id, "local").run_s = 1.0
     svc.drop_map("map-a", "lease lost")
     assert reg.handler("A") is None and "A" not in c._settled
     assert c._settled == {"B": 7}
+    assert list(c._dirty) == ["map-b"] and list(c._inflight) == ["map-b"]
+    assert [k[0] for k in c._spacings] == ["map-b"]
 
 
 def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
@@ -245,6 +251,46 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     again = MapperService(settings)
     again.load()
     assert digest(again.maps[map_id]) == digest(smap)
+
+
+def test_a_restarted_mapper_optimizes_a_merged_map_once_so_its_agents_settle_again(
+    redis_url, world
+):
+    """Which keyframes an optimization settled lives only in the mapper's memory: after
+    a restart nothing is settled, so no frame correction can be fitted and settling
+    never starts. The restarted mapper asks once for the map ("resume") when an agent
+    flies on; its correction settles the agents again."""
+    settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
+    c = svc.collab
+
+    def settled(mapper) -> int:
+        return sum(k.optimized for k in mapper.maps[map_id].kfs.values())
+
+    assert c.due(time.monotonic()) == [(map_id, "merge")]
+    c.request(map_id, "merge")
+    job = opt.queue.take(block_s=0.1)
+    assert c.on_correction(CorrectionMsg.decode(opt.handle(job).encode()))
+    assert settled(svc) > 0 and set(c._settled) == {"A", "B"}
+    assert c.due(time.monotonic() + 100.0) == []  # nothing more to do before the restart
+
+    again = MapperService(settings)
+    again.load()
+    ca = again.collab
+    assert settled(again) == 0 and ca._settled == {}
+    ca.min_interval = 0.0
+    now = time.monotonic()
+    # Nobody flies on: the map stays as it was stored (a restart alone changes nothing).
+    assert ca.mark_unsettled(now) == [] and ca.due(now) == []
+    _fly_on(again, sims, gts, "A", "MH01", 700, 760)
+    assert ca.mark_unsettled(now) == [map_id]
+    assert ca.mark_unsettled(now) == []  # once
+    assert ca.due(now) == [(map_id, "resume")]
+    ca.request(map_id, "resume")
+    job = opt.queue.take(block_s=0.1)
+    assert job is not None and job.map_id == map_id
+    assert ca.on_correction(CorrectionMsg.decode(opt.handle(job).encode()))
+    assert settled(again) > 0 and set(ca._settled) == {"A", "B"}
+    assert again.maps[map_id].check_invariants() == []
 
 
 def test_unknown_keyframes_in_a_match_are_rejected(redis_url):

@@ -221,12 +221,24 @@ class Collaboration:
         # map -> when its newest request went out (monotonic), its reason and the map
         # version it copied (only that request's correction ends it)
         self._inflight: dict[str, tuple[float, str, int]] = {}
+        # map -> its agents' newest keyframes when it was loaded, until one flies on
+        # (``load``: a restarted or taken-over map is optimized once, reason "resume")
+        self._resume: dict[str, dict[str, int]] = {}
         self.inflight_timeout_s = 60.0  # a global job lost (failed, superseded) is given up after
 
     # --- state --------------------------------------------------------------------------
     def load(self, only: set[str] | None = None) -> None:
         """Loop constraints from Redis, and the loop edges they make (of the maps in
-        ``only``, when given: a map taken over from another mapper)."""
+        ``only``, when given: a map taken over from another mapper).
+
+        A loaded map that a loop or a merge made is optimized once more (reason
+        "resume") as soon as one of its agents flies on (``mark_unsettled``): which
+        keyframes an optimization settled is kept only in memory
+        (``ServerKeyframe.optimized``, ``_settled``), so after a restart or a take-over
+        none is, the agents' corrections have nothing to be fitted on, and settling
+        starts only from an agent's first settled keyframe. Without this, the agents
+        flew on their last correction plus VO drift until the next new loop or merge,
+        which may never come. A map nobody adds to is left as it was stored."""
         for map_id, smap in list(self.reg.maps.items()):
             if only is not None and map_id not in only:
                 continue
@@ -234,6 +246,10 @@ class Collaboration:
             for q, c, S in self.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
+            if self.loops.get(map_id) or len(smap.agents) > 1:
+                at_load = {h.agent: h.latest_kf for h in self.reg.handlers_of(map_id)}
+                with self._lock:
+                    self._resume[map_id] = at_load
 
     # --- keyframe events ---------------------------------------------------------------
     def kf_event(self, map_id: str, g: int) -> KeyframeEvent | None:
@@ -442,7 +458,7 @@ class Collaboration:
         after = self.settle_window_kfs if local else self.settle_kfs
         if after <= 0:
             return []
-        marked = []
+        marked = self._mark_resumed()
         for h in list(self.reg.handlers().values()):
             settled = self._settled.get(h.agent)
             if settled is None or h.latest_kf - settled < after:
@@ -459,6 +475,27 @@ class Collaboration:
                 self._dirty[map_id] = "local" if local else "settle"
                 OPT_PENDING.set(len(self._dirty))
             marked.append(map_id)
+        return marked
+
+    def _mark_resumed(self) -> list[str]:
+        """Marks for a "resume" optimization the loaded maps (``load``) one of whose
+        agents has flown on since. The maps marked."""
+        marked = []
+        with self._lock:
+            pending = list(self._resume.items())
+        for map_id, at_load in pending:
+            # The registry's calls take its own lock: not under ours (lock order).
+            gone = self.reg.get(map_id) is None  # merged away or dropped
+            flown = not gone and any(h.latest_kf > at_load.get(h.agent, -1)
+                                     for h in self.reg.handlers_of(map_id))  # fmt: skip
+            if not (gone or flown):
+                continue
+            with self._lock:
+                self._resume.pop(map_id, None)
+                if flown:
+                    self._dirty.setdefault(map_id, "resume")
+                    OPT_PENDING.set(len(self._dirty))
+                    marked.append(map_id)
         return marked
 
     def _spacing(self, map_id: str, reason: str | None) -> _Spacing:
@@ -496,14 +533,20 @@ class Collaboration:
                 with self._lock:
                     self._settled[h.agent] = max(newest, self._settled.get(h.agent, -1))
 
-    def forget_agents(self, agents: Iterable[str]) -> None:
-        """Agents whose handlers the registry dropped with their map (``MapRegistry.drop``:
-        another mapper owns it now): what they had settled here is that mapper's to
-        track. Should the map come back, its agents settle again from the next
-        correction, as on any mapper that takes a map over."""
+    def forget_map(self, map_id: str, agents: Iterable[str]) -> None:
+        """A map the registry dropped with its agents' handlers (``MapRegistry.drop``:
+        another mapper owns it now): what was pending for it here and what its agents
+        had settled are that mapper's to track. Should the map come back, it is loaded
+        as on any mapper that takes a map over (``load``)."""
         with self._lock:
             for agent in agents:
                 self._settled.pop(agent, None)
+            for d in (self._dirty, self._inflight, self._continues, self._resume, self.loops):
+                d.pop(map_id, None)
+            for d in (self._spacings, self._snap_poses, self._window_keep):
+                for k in [k for k in d if k[0] == map_id]:
+                    del d[k]
+            OPT_PENDING.set(len(self._dirty))
 
     def due(self, now: float) -> list[tuple[str, str]]:
         with self._lock:

@@ -860,7 +860,7 @@ class MapperService:
 
     def drop_map(self, map_id: str, why: str) -> None:
         dropped = self.registry.drop(map_id)
-        self.collab.forget_agents(h.agent for h in dropped)
+        self.collab.forget_map(map_id, [h.agent for h in dropped])
         self._routes.clear()
         log.warning("dropped map %s (%s); agents %s", map_id, why,
                     ", ".join(h.agent for h in dropped))  # fmt: skip
