@@ -136,7 +136,7 @@ def _spread(n: int, k: int) -> np.ndarray:
 
 def _kind(reason: str | None) -> str:
     """The kind of a request for ``reason``: "local" for a windowed BA, "global" for any
-    other (loop, merge, settle, continue). Each kind of a map is spaced by its own runs
+    other (loop, merge, settle, continue, resume). Each kind of a map is spaced by its own runs
     (:class:`_Spacing`)."""
     return "local" if reason == "local" else "global"
 
