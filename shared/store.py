@@ -32,7 +32,9 @@ matrices little-endian float64 row-major):
                                    oct (u1 N), desc (u1 N x 32);
                                    rewritten on every change by the server: map, gid,
                                    pose (T_m_kf), mpg (i8 N: map-point gid per keypoint,
-                                   -1 none), gparent (spanning-tree parent gid, -1 none)
+                                   -1 none), gparent (spanning-tree parent gid, -1 none),
+                                   opt (1: a global optimization settled it; absent in
+                                   stores written before 2026-11-26)
     hm:mp:{a}                HASH  map point id -> 64-byte record MP_DTYPE: position in
                                    the map frame (3 f8), anchor keyframe gid (i8), descriptor
                                    (32 u1); one field per point so a batch is one HSET
@@ -249,6 +251,7 @@ class StoredKeyframe:
     keypoints: np.ndarray | None = None
     octaves: np.ndarray | None = None
     descriptors: np.ndarray | None = None
+    optimized: bool = False  # a global optimization settled it (feedback fits on these)
 
 
 @dataclass
@@ -347,6 +350,7 @@ class Store:
         pipe.hset(_k("kf", kf.agent, kf.id), mapping={
             "map": kf.map_id, "gid": kf.gid, "pose": _b8(kf.T_m_kf),
             "mpg": np.asarray(kf.mp_gids, "<i8").tobytes(), "gparent": kf.gparent,
+            "opt": int(kf.optimized),
         })  # fmt: skip
 
     @staticmethod
@@ -490,7 +494,7 @@ class Store:
         ids = self.keyframe_ids(agent) if ids is None else ids
         names = [b"map", b"stamp", b"pose", b"pred", b"parent", b"T_pred", b"T_par", b"T_l"]
         if full:
-            names += [b"gid", b"mpg", b"gparent", b"kp", b"oct", b"desc"]
+            names += [b"gid", b"mpg", b"gparent", b"kp", b"oct", b"desc", b"opt"]
         p = self.r.pipeline(transaction=False)
         for i in ids:
             p.hmget(_k("kf", agent, i), names)
@@ -509,6 +513,7 @@ class Store:
                 kf.keypoints = np.frombuffer(v[11], "<f4").reshape(-1, 2).copy()
                 kf.octaves = np.frombuffer(v[12], np.uint8).copy()
                 kf.descriptors = np.frombuffer(v[13], np.uint8).reshape(-1, 32).copy()
+                kf.optimized = v[14] is not None and int(v[14]) == 1  # absent: stored before
             out.append(kf)
         return out
 

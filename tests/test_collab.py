@@ -158,9 +158,12 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     assert set(info["agents"]) == {"A", "B"} and info["n_kf"] == len(smap.kfs)
     assert Store(connect(redis_url)).maps() == [smap.map_id]
 
-    # After the merge B keeps registering into the common map, at the common scale.
-    _fly_on(svc, sims, gts, "B", "MH02", 700, 900)
-    assert _joint_rigid_error(svc, gts, "AB") < 1e-6
+    # After the merge B keeps registering into the common map, at the common scale, on
+    # the restarted mapper: the first one's lease may have lapsed meanwhile on a slow
+    # machine (3 s, nothing renews it here), and then the restart took the map over
+    # with a new fencing token and the first one's writes are refused (``Fenced``).
+    _fly_on(again, sims, gts, "B", "MH02", 700, 900)
+    assert _joint_rigid_error(again, gts, "AB") < 1e-6
 
 
 def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):
@@ -257,31 +260,60 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     assert digest(again.maps[map_id]) == digest(smap)
 
 
-def test_a_restarted_mapper_optimizes_a_merged_map_once_so_its_agents_settle_again(
-    redis_url, world
-):
-    """Which keyframes an optimization settled lives only in the mapper's memory: after
-    a restart nothing is settled, so no frame correction can be fitted and settling
-    never starts. The restarted mapper asks once for the map ("resume") when an agent
-    flies on; its correction settles the agents again."""
+def _settled_then_restarted(redis_url, world, forget_flags: bool = False):
+    """The merged pair optimized once (settled), then a second mapper loaded from the
+    same Redis; ``forget_flags``: the stored settled flags removed first, as in a store
+    written before they were. (first mapper, restarted mapper, sims, gts, map, opt)."""
     settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
     c = svc.collab
-
-    def settled(mapper) -> int:
-        return sum(k.optimized for k in mapper.maps[map_id].kfs.values())
-
     assert c.due(time.monotonic()) == [(map_id, "merge")]
     c.request(map_id, "merge")
     job = opt.queue.take(block_s=0.1)
     assert c.on_correction(CorrectionMsg.decode(opt.handle(job).encode()))
-    assert settled(svc) > 0 and set(c._settled) == {"A", "B"}
+    assert _n_settled(svc, map_id) > 0 and set(c._settled) == {"A", "B"}
     assert c.due(time.monotonic() + 100.0) == []  # nothing more to do before the restart
-
+    if forget_flags:
+        r = connect(redis_url)
+        for key in r.scan_iter("hm:kf:*"):
+            r.hdel(key, "opt")
     again = MapperService(settings)
     again.load()
+    again.collab.min_interval = 0.0
+    return svc, again, sims, gts, map_id, opt
+
+
+def _n_settled(mapper, map_id: str) -> int:
+    return sum(k.optimized for k in mapper.maps[map_id].kfs.values())
+
+
+def test_a_restarted_mapper_knows_which_keyframes_were_settled(redis_url, world):
+    """Which keyframes an optimization settled is stored with them: a restarted mapper
+    holds the same flags (its agents' corrections are fitted on them) and settles the
+    agents on as before, without optimizing the whole map again first."""
+    svc, again, sims, gts, map_id, _ = _settled_then_restarted(redis_url, world)
     ca = again.collab
-    assert settled(again) == 0 and ca._settled == {}
-    ca.min_interval = 0.0
+    assert _n_settled(again, map_id) == _n_settled(svc, map_id)
+    assert ca._settled == svc.collab._settled
+    for agent in ("A", "B"):
+        mine = [g for g, k in svc.maps[map_id].kfs.items() if k.agent == agent]
+        assert [again.maps[map_id].kfs[g].optimized for g in mine] == [
+            svc.maps[map_id].kfs[g].optimized for g in mine
+        ]
+    now = time.monotonic()
+    assert ca.mark_unsettled(now) == [] and ca.due(now) == []
+    _fly_on(again, sims, gts, "A", "MH01", 700, 900)
+    assert ca.mark_unsettled(now) == [map_id]
+    assert ca.due(now) == [(map_id, "local")]  # settling, not a whole "resume" run
+
+
+def test_a_restarted_mapper_without_settled_flags_optimizes_a_merged_map_once(redis_url, world):
+    """A store without the settled flags (written before they were): after a restart
+    nothing is settled, so no frame correction can be fitted and settling never starts.
+    The restarted mapper asks once for the map ("resume") when an agent flies on; its
+    correction settles the agents again."""
+    _, again, sims, gts, map_id, opt = _settled_then_restarted(redis_url, world, True)
+    ca = again.collab
+    assert _n_settled(again, map_id) == 0 and ca._settled == {}
     now = time.monotonic()
     # Nobody flies on: the map stays as it was stored (a restart alone changes nothing).
     assert ca.mark_unsettled(now) == [] and ca.due(now) == []
@@ -293,7 +325,7 @@ def test_a_restarted_mapper_optimizes_a_merged_map_once_so_its_agents_settle_aga
     job = opt.queue.take(block_s=0.1)
     assert job is not None and job.map_id == map_id
     assert ca.on_correction(CorrectionMsg.decode(opt.handle(job).encode()))
-    assert settled(again) > 0 and set(ca._settled) == {"A", "B"}
+    assert _n_settled(again, map_id) > 0 and set(ca._settled) == {"A", "B"}
     assert again.maps[map_id].check_invariants() == []
 
 

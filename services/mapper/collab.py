@@ -231,14 +231,16 @@ class Collaboration:
         """Loop constraints from Redis, and the loop edges they make (of the maps in
         ``only``, when given: a map taken over from another mapper).
 
-        A loaded map that a loop or a merge made is optimized once more (reason
-        "resume") as soon as one of its agents flies on (``mark_unsettled``): which
-        keyframes an optimization settled is kept only in memory
-        (``ServerKeyframe.optimized``, ``_settled``), so after a restart or a take-over
-        none is, the agents' corrections have nothing to be fitted on, and settling
-        starts only from an agent's first settled keyframe. Without this, the agents
-        flew on their last correction plus VO drift until the next new loop or merge,
-        which may never come. A map nobody adds to is left as it was stored."""
+        Which keyframes an optimization settled (``ServerKeyframe.optimized``) is
+        stored with them, so each agent's newest settled keyframe (``_settled``) is
+        known again and its corrections and settling go on as before. A map that a loop
+        or a merge made but none of whose keyframes is stored as settled (a store
+        written before the flag was, or a crash between a correction and its write) is
+        optimized once more (reason "resume") as soon as one of its agents flies on
+        (``mark_unsettled``): without settled keyframes no correction can be fitted and
+        settling never starts, so the agents would fly on their last correction plus VO
+        drift until the next new loop or merge, which may never come. A map nobody adds
+        to is left as it was stored."""
         for map_id, smap in list(self.reg.maps.items()):
             if only is not None and map_id not in only:
                 continue
@@ -246,7 +248,14 @@ class Collaboration:
             for q, c, S in self.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
-            if self.loops.get(map_id) or len(smap.agents) > 1:
+            settled: dict[str, int] = {}
+            for kf in smap.kfs.values():
+                if kf.optimized:
+                    settled[kf.agent] = max(kf.id, settled.get(kf.agent, -1))
+            agents = {h.agent for h in self.reg.handlers_of(map_id)}
+            with self._lock:
+                self._settled.update({a: i for a, i in settled.items() if a in agents})
+            if not settled and (self.loops.get(map_id) or len(smap.agents) > 1):
                 at_load = {h.agent: h.latest_kf for h in self.reg.handlers_of(map_id)}
                 with self._lock:
                     self._resume[map_id] = at_load

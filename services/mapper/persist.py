@@ -27,7 +27,8 @@ def write_handler(pipe, h: AgentHandler, new: bool = False) -> None:
 
 def kf_state(kf: ServerKeyframe, map_id: str) -> StoredKeyframe:
     """The fields a pose, association or map change rewrites."""
-    return StoredKeyframe(kf.agent, kf.id, map_id, kf.T_m_kf, kf.gid, kf.mp, kf.parent)
+    return StoredKeyframe(kf.agent, kf.id, map_id, kf.T_m_kf, kf.gid, kf.mp, kf.parent,
+                          optimized=kf.optimized)  # fmt: skip
 
 
 def write_kf_state(pipe, kf: ServerKeyframe, map_id: str) -> None:
@@ -142,6 +143,7 @@ def _keyframes(store: Store, agent: str, ah: AgentHandler):
             s.gid, agent, s.id, s.stamp_ns, s.T_m_kf, s.T_l_kf, s.keypoints,
             ah.camera.undistort_points(s.keypoints), s.octaves, s.descriptors, s.mp_gids,
         )  # fmt: skip
+        kf.optimized = s.optimized
         ah.local_poses[s.id] = kf.T_l_kf
         out.append((kf, s.gparent))
     return out
