@@ -477,6 +477,49 @@ def test_an_agent_far_past_its_settled_keyframes_gets_its_map_optimized_again(re
     assert ha.smap.check_invariants() == []
 
 
+def test_a_windowed_settle_runs_in_the_gap_of_a_spaced_global_request(redis_url, world):
+    """A global request waiting out its spacing (a loop on a big map: 4x its run time)
+    does not hold settling back: the window goes out in the gap and the global request
+    stays pending; due together, the global run alone goes (it settles too)."""
+    settings, svc, gts, sims, map_id, opt = _merged_with_optimizer(redis_url, world)
+    c = svc.collab
+    ha = svc.handlers["A"]
+
+    def run_one(reason: str) -> None:
+        job = opt.queue.take(block_s=0.1)
+        assert job is not None and job.map_id == map_id
+        corr = opt.handle(job)
+        assert corr is not None and corr.stats["reason"] == reason
+        assert c.on_correction(CorrectionMsg.decode(corr.encode()))
+
+    assert c.due(time.monotonic()) == [(map_id, "merge")]
+    c.request(map_id, "merge")
+    _fly_on(svc, sims, gts, "A", "MH01", 700, 1150)  # flown during the optimization
+    run_one("merge")
+    assert not ha.smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
+    now = time.monotonic()
+    g = c._spacing(map_id, "loop")
+    g.sent, g.run_s = now, 20.0  # the next global run waits 20 / optimizer_share
+    c.mark_dirty(map_id, "loop")
+    assert c.due(now + 1.0) == []
+    assert c.mark_unsettled(now) == [map_id]
+    assert c.mark_unsettled(now) == []  # once
+    assert c.due(now + 1.0) == [(map_id, "local")]
+    assert c._dirty == {map_id: "loop"}  # still pending
+    assert c.request(map_id, "local") is not None
+    assert c.mark_unsettled(now) == []  # out
+    run_one("local")
+    assert ha.smap.kfs[ha.kf_gid(ha.latest_kf)].optimized
+    assert c.due(now + 1.0) == []
+    assert c.due(now + 20.0 / c.optimizer_share + 0.1) == [(map_id, "loop")]
+    # Both due at once: the global run alone.
+    _fly_on(svc, sims, gts, "A", "MH01", 1150, 1400)
+    c.mark_dirty(map_id, "loop")
+    assert c.mark_unsettled(time.monotonic()) == [map_id]
+    assert c.due(time.monotonic() + 1e3) == [(map_id, "loop")]
+    assert c._windows == set()
+
+
 def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(redis_url, world):
     """Settling without a global optimization (reason "local"): an agent
     settle_window_kfs keyframes past its newest settled one gets a windowed BA -- the

@@ -42,6 +42,10 @@ settling is a windowed BA instead (reason "local"; capture.py ``capture_window``
 map's unsettled keyframes free, the keyframes that see most of their points fixed, after
 ``settle_window_kfs`` keyframes, spaced by its own run time; its correction moves the
 window and the keyframes that arrived since, nothing else (apply_correction ``keep``).
+A global request waiting out its spacing does not hold a window back (``_windows``):
+in team5 loops keep one pending nearly all the time, and at ea55418 the map ran 18
+global optimizations and not one window, agent1's newest settled keyframe lagging
+60-80 keyframes behind it; its corrections were fitted there and carried that far.
 
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
@@ -187,6 +191,9 @@ class Collaboration:
         self.loops: dict[str, list[LoopConstraint]] = {}
         self.min_interval = optimize_min_interval_s
         self._dirty: dict[str, str] = {}  # map -> reason
+        # Maps whose agents want a windowed settle while a global request of the map
+        # waits out its spacing (``mark_unsettled``): one slot per map in ``_dirty``.
+        self._windows: set[str] = set()
         self._lock = threading.Lock()
         # Map copies and corrections of any map, one at a time (see ``request``).
         self._opt_lock = threading.Lock()
@@ -477,12 +484,21 @@ class Collaboration:
                 continue  # another mapper's
             with self._lock:
                 out = self._inflight.get(map_id)
-                if map_id in self._dirty or (
-                    out is not None and now - out[0] < self._inflight_timeout(map_id, out[1])
-                ):
+                if out is not None and now - out[0] < self._inflight_timeout(map_id, out[1]):
                     continue
-                self._dirty[map_id] = "local" if local else "settle"
-                OPT_PENDING.set(len(self._dirty))
+                pending = self._dirty.get(map_id)
+                if pending is not None:
+                    # A global run waits out its spacing (4x its run time: 30-100 s on a
+                    # team5 map, whose loops keep one always pending): a windowed settle
+                    # fits in the gap. Without it team5 at ea55418 ran 18 global and no
+                    # windowed optimization, and agent1's newest settled keyframe lagged
+                    # 60-80 keyframes behind it.
+                    if not local or _kind(pending) != "global" or map_id in self._windows:
+                        continue
+                    self._windows.add(map_id)
+                else:
+                    self._dirty[map_id] = "local" if local else "settle"
+                    OPT_PENDING.set(len(self._dirty))
             marked.append(map_id)
         return marked
 
@@ -552,6 +568,7 @@ class Collaboration:
                 self._settled.pop(agent, None)
             for d in (self._dirty, self._inflight, self._continues, self._resume, self.loops):
                 d.pop(map_id, None)
+            self._windows.discard(map_id)
             for d in (self._spacings, self._snap_poses, self._window_keep):
                 for k in [k for k in d if k[0] == map_id]:
                     del d[k]
@@ -568,6 +585,16 @@ class Collaboration:
                 ):
                     out.append((map_id, reason))
                     self._dirty.pop(map_id, None)
+            for map_id in list(self._windows):
+                if map_id in self.reg.merged_into or any(m == map_id for m, _ in out):
+                    self._windows.discard(map_id)  # the global run settles it
+                    continue
+                sp = self._spacing(map_id, "local")
+                if now - sp.sent >= sp.interval(
+                    self.min_interval, self.opt_share, self.optimizer_share
+                ):
+                    out.append((map_id, "local"))
+                    self._windows.discard(map_id)
             for map_id in [m for m in self._dirty if m in self.reg.merged_into]:
                 self._dirty.pop(map_id, None)
             OPT_PENDING.set(len(self._dirty))
