@@ -33,8 +33,8 @@ matrices little-endian float64 row-major):
                                    rewritten on every change by the server: map, gid,
                                    pose (T_m_kf), mpg (i8 N: map-point gid per keypoint,
                                    -1 none), gparent (spanning-tree parent gid, -1 none),
-                                   opt (1: a global optimization settled it; absent in
-                                   stores written before 2026-11-26)
+                                   opt (1: an optimization, global or windowed, settled
+                                   it; absent in stores written before 2026-11-26)
     hm:mp:{a}                HASH  map point id -> 64-byte record MP_DTYPE: position in
                                    the map frame (3 f8), anchor keyframe gid (i8), descriptor
                                    (32 u1); one field per point so a batch is one HSET
@@ -251,7 +251,7 @@ class StoredKeyframe:
     keypoints: np.ndarray | None = None
     octaves: np.ndarray | None = None
     descriptors: np.ndarray | None = None
-    optimized: bool = False  # a global optimization settled it (feedback fits on these)
+    optimized: bool = False  # an optimization settled it (corrections are fitted on these)
 
 
 @dataclass

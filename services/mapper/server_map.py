@@ -42,8 +42,8 @@ class ServerKeyframe:
     parent: int = -1  # spanning-tree parent gid
     children: set[int] = field(default_factory=set)
     loop_edges: set[int] = field(default_factory=set)
-    # Went through a global optimization (its pose is settled, not the frontier's
-    # first guess): the frame correction weights such keyframes higher.
+    # Went through an optimization, global or windowed (its pose is settled, not the
+    # frontier's first guess): the frame correction is fitted on such keyframes only.
     optimized: bool = False
 
     def observed(self) -> np.ndarray:
