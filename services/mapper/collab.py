@@ -255,14 +255,9 @@ class Collaboration:
             for q, c, S in self.store.loops(map_id):
                 self.loops.setdefault(map_id, []).append(LoopConstraint(q, c, S))
                 add_loop_edge(smap, q, c)
-            settled: dict[str, int] = {}
-            for kf in smap.kfs.values():
-                if kf.optimized:
-                    settled[kf.agent] = max(kf.id, settled.get(kf.agent, -1))
-            agents = {h.agent for h in self.reg.handlers_of(map_id)}
-            with self._lock:
-                self._settled.update({a: i for a, i in settled.items() if a in agents})
-            if not settled and (self.loops.get(map_id) or len(smap.agents) > 1):
+            settled = np.array([g for g, kf in smap.kfs.items() if kf.optimized], np.int64)
+            self._note_settled(map_id, settled)
+            if not len(settled) and (self.loops.get(map_id) or len(smap.agents) > 1):
                 at_load = {h.agent: h.latest_kf for h in self.reg.handlers_of(map_id)}
                 with self._lock:
                     self._resume[map_id] = at_load
@@ -547,7 +542,8 @@ class Collaboration:
 
     def _note_settled(self, map_id: str, kf_gids: np.ndarray) -> None:
         """The newest keyframe of each agent of ``map_id`` that a correction over
-        ``kf_gids`` (the optimizer's copy) settled. Under the map's lock."""
+        ``kf_gids`` (the optimizer's copy) settled, or that a loaded map holds as settled
+        (``load``). Under the map's lock, or before the map is served."""
         if not len(kf_gids):
             return
         idx, local = agent_index_of(kf_gids), local_id_of(kf_gids)
