@@ -396,6 +396,11 @@ class Ack:
     # nothing it carried was taken -- and the agent should send it again, and nothing
     # new, only after this many seconds (back-pressure instead of its resend timeout).
     retry_after_s: float | None = None
+    # Optional (added within v1): seconds the server held batch ``seq``, from its arrival
+    # to this ack (its queue and its registration): what of the ack latency is the
+    # server's, the rest being the link's. The agent's window answers the server's part
+    # only (services/agent/comm.py): a long link is not a slow server.
+    held_s: float | None = None
 
     def encode(self) -> bytes:
         d = {
@@ -412,6 +417,8 @@ class Ack:
             d["seq"] = self.seq
         if self.retry_after_s is not None:
             d["retry_after_s"] = float(self.retry_after_s)
+        if self.held_s is not None:
+            d["held_s"] = float(self.held_s)
         return packb(d)
 
     @staticmethod
@@ -427,15 +434,16 @@ class Ack:
             held_kf_ids=_opt_ids(d, "held_kf_ids"),
             missing_kf_ids=_opt_ids(d, "missing_kf_ids"),
             seq=_int(d["seq"], "seq") if "seq" in d else -1,
-            retry_after_s=_retry_after(d.get("retry_after_s")),
+            retry_after_s=_seconds(d.get("retry_after_s"), "retry_after_s"),
+            held_s=_seconds(d.get("held_s"), "held_s"),
         )
 
 
-def _retry_after(v: Any) -> float | None:
+def _seconds(v: Any, name: str) -> float | None:
     if v is None:
         return None
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 3600:
-        raise DecodeError("retry_after_s: expected seconds in [0, 3600]")
+        raise DecodeError(f"{name}: expected seconds in [0, 3600]")
     return float(v)
 
 

@@ -73,9 +73,10 @@ class CommSettings(BaseModel):
     resend_timeout_s: float = Field(2.0, gt=0)
     backoff_max_s: float = Field(30.0, gt=0)
     jitter: float = Field(0.2, ge=0, lt=1)
-    # Keyframes in flight unacknowledged: starts at window, +1 per ack within
-    # ack_target_s, halved on a later one down to window_min (the agent's share of a
-    # loaded server; the target is the bound on the latency of what it accepts).
+    # Keyframes in flight unacknowledged: starts at window, +1 per ack whose batch the
+    # server held (Ack.held_s) within ack_target_s, halved on a later one down to
+    # window_min (the agent's share of a loaded server; the target is the bound on the
+    # latency of what it accepts; the link's delay is not the server's).
     window: int = Field(8, ge=1)
     window_min: int = Field(2, ge=1)
     window_max: int = Field(32, ge=1)

@@ -195,6 +195,29 @@ def test_window_shrinks_when_acks_are_late_and_grows_when_prompt():
     assert c.window >= 8
 
 
+def test_a_long_link_is_no_slow_server():
+    """Acks 2 s after the send, but the server held each batch 50 ms: the delay is the
+    link's, and the window grows as on prompt acks (before, it halved down to its
+    minimum on a 0.5-1.5 s link, and two keyframes per round trip fell behind the VO).
+    The same latency held by the server is back-pressure: the window halves."""
+    for held, grows in ((0.05, True), (1.9, False)):
+        kfs = _keyframes(30)
+        c = CommModule(
+            "A", rate_hz=1000, resend_timeout_s=100, window=8, ack_target_s=0.5, window_min=1
+        )
+        for k in kfs:
+            c.add_keyframe(k.kf)
+        t = 0.0
+        for _ in range(3):
+            ids = _send_all(c, t)
+            t += 2.0
+            ack = _ack(ids)
+            ack.held_s = held
+            c.on_ack(ack, t)
+        assert (c.window > 8) if grows else (c.window < 8), (held, c.window)
+        assert c.srtt is not None and c.srtt > 1.5  # the resend timeout follows it all
+
+
 def test_held_and_asked_for_keyframes_stay_outside_the_window():
     """With a window of one, a keyframe the server holds (its predecessor was lost) must
     not block the predecessor's resend, or the two would wait on each other."""

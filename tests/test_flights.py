@@ -69,8 +69,12 @@ def test_resends_within_a_flight_are_deduplicated_and_a_second_flight_is_stored(
     store = svc.store
     first = _batches(world, "MH01", slice(900, 1300), session=11, n=6)
     for b in first:
+        t0 = time.time_ns()
         ack = _put(svc, b)
         assert ack.map_id == "map-A" and list(ack.kf_ids) == [k.id for k in b.new_kfs]
+        # How long the mapper held the batch (the agent's window answers that part of
+        # the ack latency only): from its arrival to the ack, no more.
+        assert ack.held_s is not None and 0 < ack.held_s <= (time.time_ns() - t0) * 1e-9
     assert store.keyframe_ids("A") == list(range(6))
     # Resends within the flight: acknowledged, stored once.
     before, dup = _stored_keyframes(), _duplicates()

@@ -28,19 +28,22 @@ def test_golden_bytes(name, make, cls):
     assert decoded.encode() == golden
 
 
-def test_ack_retry_after_is_optional_both_ways():
-    """A NACK (added within v1): an old peer's ack has none, a shed batch's has it, and
-    a value that is not seconds is a clear decode error."""
+@pytest.mark.parametrize("field", ["retry_after_s", "held_s"])
+def test_ack_seconds_fields_are_optional_both_ways(field):
+    """A NACK's retry-after and the time the server held a batch (both added within
+    v1): an old peer's ack has neither, a new one's has them, and a value that is not
+    seconds is a clear decode error."""
     old = sample_ack()
-    assert Ack.decode(old.encode()).retry_after_s is None
-    nack = sample_ack()
-    nack.seq, nack.retry_after_s = 7, 1.5
-    back = Ack.decode(nack.encode())
-    assert (back.seq, back.retry_after_s) == (7, 1.5)
+    assert getattr(Ack.decode(old.encode()), field) is None
+    new = sample_ack()
+    new.seq = 7
+    setattr(new, field, 1.5)
+    back = Ack.decode(new.encode())
+    assert (back.seq, getattr(back, field)) == (7, 1.5)
     for bad in (-1.0, float("nan"), "soon", True, 1e9):
         d = msgpack.unpackb(old.encode(), raw=False, strict_map_key=False)
-        d["retry_after_s"] = bad
-        with pytest.raises(DecodeError, match="retry_after_s"):
+        d[field] = bad
+        with pytest.raises(DecodeError, match=field):
             Ack.decode(msgpack.packb(d, use_bin_type=True))
 
 

@@ -24,6 +24,15 @@ agents send 3-7x their data when acks took longer than that). So, as TCP does:
   says nothing for a timeout one keyframe probes past a full window. It never goes
   below ``window_min``.
 
+A long link is no slow server either. The window is the server's back-pressure, so a
+late ack counts only for the time the server held the batch (``Ack.held_s``, from its
+arrival to the ack; an ack without it counts whole). Before, every ack on a link with
+0.5-1.5 s delay came later than ``ack_target_s``, the window sat at ``window_min`` (103
+cuts in one flight) and two keyframes per round trip were fewer than the VO made: the
+seed-1 pair's agent1 had 40-60 keyframes queued by the end of its flight, the map and
+its settled keyframes that far behind it, and the frame correction carried that far
+put its reported pose 30-47 mm off over its last 20 s (VO 5-8 mm).
+
 Loss is no congestion (issue 18 item 6). Backoff and the window cut answer a server
 that is slow or gone, i.e. a timeout in silence. A timeout of an item whose batch got
 no answer while a batch sent after it did (``_answered``) is a loss on the way: the
@@ -278,7 +287,11 @@ class CommModule:
         base = min(self.rto * mult, self.backoff_max_s)
         return base * (1.0 + self.jitter * (2.0 * self._rng.random() - 1.0))
 
-    def _on_latency(self, lat: float, now: float) -> None:
+    def _on_latency(self, lat: float, now: float, held_s: float | None = None) -> None:
+        """One first send's ack latency ``lat``; ``held_s``: how much of it the server
+        held the batch (None: a server that does not say, then all of it is the
+        server's). The resend timeout follows the whole latency, the window only the
+        server's part."""
         self._backoff = 1.0
         if self.srtt is None:
             self.srtt, self.rttvar = lat, lat / 2
@@ -286,7 +299,7 @@ class CommModule:
             self.mdev = 0.75 * self.mdev + 0.25 * abs(lat - self.srtt)
             self.rttvar = 0.75 * self.rttvar + 0.25 * abs(lat - self.srtt)
             self.srtt = 0.875 * self.srtt + 0.125 * lat
-        if lat <= self.ack_target_s:
+        if (lat if held_s is None else held_s) <= self.ack_target_s:
             self.window = min(self.window + 1.0, float(self.window_max))
         else:
             self._cut_window(now)
@@ -453,7 +466,7 @@ class CommModule:
                     # Karn: a resent item's latency mixes up its sends; a held one's
                     # includes waiting for another keyframe.
                     if self.attempts.get(i) == 1 and i not in self.held and sent is not None:
-                        self._on_latency(now - sent.t, now)
+                        self._on_latency(now - sent.t, now, ack.held_s)
             self.sent_kfs.pop(i, None)
             self._last_seq_by_kf.pop(i, None)
             self.attempts.pop(i, None)

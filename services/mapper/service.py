@@ -534,6 +534,8 @@ class MapperService:
         for h, batch, recv_ns, ing in group:
             res, ack = ing.res, ing.ack
             ack.sent_ns = time.time_ns()
+            if recv_ns > 0:  # 0: not received off the wire (fed in directly)
+                ack.held_s = min(max(ack.sent_ns - recv_ns, 0) * 1e-9, 3600.0)
             acks.append(ack)
             if self.bus is not None:
                 self.bus.put(keys.agent_ack(batch.agent), ack.encode())
