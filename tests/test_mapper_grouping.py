@@ -48,8 +48,10 @@ def _interleaved(world) -> list:
 
 
 def _service(redis_url: str) -> MapperService:
-    """A mapper whose agents A and B register into one map (B joined A's map)."""
-    svc = MapperService(Settings(redis_url=redis_url))
+    """A mapper whose agents A and B register into one map (B joined A's map). It never
+    sheds: the test queues every batch before the actor takes any, and on a loaded
+    machine the last ones waited past ``shed_after_s`` (64 of 77 registered, once)."""
+    svc = MapperService(Settings(redis_url=redis_url, mapper={"shed_after_s": 3600.0}))
     svc.handler("A")
     svc.handler("B", map_id="map-A", S_m_l=Sim3.identity())
     return svc
