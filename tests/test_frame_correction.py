@@ -168,6 +168,27 @@ def test_settled_keyframes_close_together_are_no_lever():
     assert S is not None and abs(S.s - 1.0) < 0.01
 
 
+def test_a_settle_that_steps_the_scale_gives_no_correction():
+    """A windowed BA settled agent4's newest keyframes 0.5 m off at a scale 12 % above
+    the stretch before (team5, the dark part of MH04); a correction fitted on them moved
+    the reported pose by 0.7 m. A VO's scale drifts slowly: a step like that is a broken
+    settle, and the agent keeps its last correction. A step within the VO's drift (1 %)
+    is fitted as before."""
+    _, T_true = _flight(200)
+    T_l = np.stack([_drifted(T, k) for k, T in enumerate(T_true)])
+    for step, broken in ((1.12, True), (1.01, False)):
+        T_m = T_true.copy()
+        # The newest 8 settled keyframes (one window's worth of an agent's) placed at
+        # ``step`` times the scale, about the first of them.
+        c0 = T_m[192, :3, 3].copy()
+        T_m[192:, :3, 3] = c0 + step * (T_m[192:, :3, 3] - c0)
+        S = fit_settled(T_l, T_m, np.ones(len(T_l), bool))
+        assert (S is None) == broken, step
+        assert (estimate_correction(_handler(T_l, T_m)) is None) == broken, step
+    # The previous stretch alone (the broken keyframes not settled) is fitted.
+    assert fit_settled(T_l, T_m, np.arange(len(T_l)) < 192) is not None
+
+
 def test_anchor_is_no_lever_for_millimetres_of_map_motion():
     """A slow take-off: the first 20 keyframes lie within 2 cm. A global BA moves them by
     a millimetre in the map, as it does. The reported pose, 3 units away, must not

@@ -49,6 +49,12 @@ LINE_RATIO = 0.03  # centres this much narrower across than along lie on a line
 SCALE_FIT_KFS = 20
 SCALE_FIT_SPREAD = 0.2
 SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
+# A settled fit's scale may differ from that of the settled stretch before it by at most
+# this (fit_settled): the VO's own scale drifts by ~1 % between neighbouring stretches
+# (p99 0.3-1.2 % per agent over six recorded team runs), a broken settle by ~10 %. A
+# windowed settle adds about settle_window_kfs (8) of an agent's keyframes, fewer than a
+# fit spans; a broken stretch longer than two fits would be compared with itself.
+MAX_SCALE_STEP = 0.04
 _pos = attrgetter("pos")
 _desc = attrgetter("descriptor")
 
@@ -92,15 +98,38 @@ def fit_settled(
     Past them the VO carries the pose on, which is the best the agent has there. The
     spread is the anchor's lever again: the first global BA of agent5's map settled
     its first 15 keyframes, taken off slowly within 0.01 units, and ten of them gave a
-    scale of 0.966 that moved its reported pose by 37 cm (ATE 37 vs 20 mm)."""
+    scale of 0.966 that moved its reported pose by 37 cm (ATE 37 vs 20 mm).
+
+    None too when the fit's scale differs from that of the settled keyframes just
+    before them (fitted the same way) by more than ``MAX_SCALE_STEP``: a VO's scale
+    drifts slowly, so such a step is a settle gone wrong, not drift, and the agent
+    keeps its last correction until an optimization places those keyframes again. In a
+    team5 run a windowed BA settled agent4's newest keyframes (in the dark stretch of
+    MH04, where registration had put them 0.3-0.6 m off) 0.5 m off the truth, at a
+    scale 12 % above the stretch before; the correction fitted on them moved agent4's
+    reported pose by 0.7 m, its ATE 141 mm against its VO's 44, until the next global
+    run placed them again 7 s later."""
     idx = np.nonzero(np.asarray(optimized, bool))[0]
+    span = _settled_span(T_l, idx, n, spread)
+    if span is None:
+        return None
+    S = fit_sim3_poses(T_l[span], T_m[span])
+    before = _settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
+    if S is not None and before is not None:
+        S0 = fit_sim3_poses(T_l[before], T_m[before])
+        if S0 is not None and abs(S.s / S0.s - 1.0) > MAX_SCALE_STEP:
+            return None
+    return S
+
+
+def _settled_span(T_l: np.ndarray, idx: np.ndarray, n: int, spread: float) -> np.ndarray | None:
+    """Of settled keyframes ``idx`` (in keyframe order), the newest ones
+    :func:`fit_settled` fits on; None when there are too few or they do not spread."""
     if n <= 0 or len(idx) < max(min(n, MIN_FIT_KFS), 2):
         return None
     # Newest first, so the count runs back from the newest settled keyframe.
     m = anchor_count(T_l[idx[::-1], :3, 3], min_kfs=min(n, len(idx)), spread=spread)
-    if m is None:
-        return None
-    return fit_sim3_poses(T_l[idx[-m:]], T_m[idx[-m:]])
+    return None if m is None else idx[-m:]
 
 
 def fit_frame(T_l: np.ndarray, T_m: np.ndarray, settled: np.ndarray) -> Sim3 | None:
