@@ -6,6 +6,7 @@ import numpy as np
 
 from services.mapper.correction_history import CorrectionHistory
 from services.mapper.feedback import (
+    MAX_SCALE_STEP,
     anchor_count,
     estimate_correction,
     fit_frame,
@@ -182,8 +183,10 @@ def test_a_settle_that_steps_the_scale_gives_no_correction():
         # ``step`` times the scale, about the first of them.
         c0 = T_m[192, :3, 3].copy()
         T_m[192:, :3, 3] = c0 + step * (T_m[192:, :3, 3] - c0)
-        S = fit_settled(T_l, T_m, np.ones(len(T_l), bool))
+        S = fit_settled(T_l, T_m, np.ones(len(T_l), bool), max_step=MAX_SCALE_STEP)
         assert (S is None) == broken, step
+        # Without the check (the handler's registration scale): fitted either way.
+        assert fit_settled(T_l, T_m, np.ones(len(T_l), bool)) is not None
         assert (estimate_correction(_handler(T_l, T_m)) is None) == broken, step
     # The previous stretch alone (the broken keyframes not settled) is fitted.
     assert fit_settled(T_l, T_m, np.arange(len(T_l)) < 192) is not None

@@ -49,11 +49,12 @@ LINE_RATIO = 0.03  # centres this much narrower across than along lie on a line
 SCALE_FIT_KFS = 20
 SCALE_FIT_SPREAD = 0.2
 SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
-# A settled fit's scale may differ from that of the settled stretch before it by at most
-# this (fit_settled): the VO's own scale drifts by ~1 % between neighbouring stretches
-# (p99 0.3-1.2 % per agent over six recorded team runs), a broken settle by ~10 %. A
-# windowed settle adds about settle_window_kfs (8) of an agent's keyframes, fewer than a
-# fit spans; a broken stretch longer than two fits would be compared with itself.
+# The frame correction's settled fit's scale may differ from that of the settled stretch
+# before it by at most this (estimate_from_poses): the VO's own scale drifts by ~1 %
+# between neighbouring stretches (p99 0.3-1.2 % per agent over six recorded team runs),
+# a broken settle by ~10 %. A windowed settle adds about settle_window_kfs (8) of an
+# agent's keyframes, fewer than a fit spans; a broken stretch longer than two fits would
+# be compared with itself.
 MAX_SCALE_STEP = 0.04
 _pos = attrgetter("pos")
 _desc = attrgetter("descriptor")
@@ -82,6 +83,7 @@ def fit_settled(
     optimized: np.ndarray,
     n: int = LOCAL_FIT_KFS,
     spread: float = SETTLED_SPREAD,
+    max_step: float | None = None,
 ) -> Sim3 | None:
     """S_m_l fitted on the newest of an agent's keyframes that a global optimization
     has settled (``optimized``), VO poses ``T_l`` against map poses ``T_m`` ((N, 4, 4),
@@ -100,24 +102,18 @@ def fit_settled(
     its first 15 keyframes, taken off slowly within 0.01 units, and ten of them gave a
     scale of 0.966 that moved its reported pose by 37 cm (ATE 37 vs 20 mm).
 
-    None too when the fit's scale differs from that of the settled keyframes just
-    before them (fitted the same way) by more than ``MAX_SCALE_STEP``: a VO's scale
-    drifts slowly, so such a step is a settle gone wrong, not drift, and the agent
-    keeps its last correction until an optimization places those keyframes again. In a
-    team5 run a windowed BA settled agent4's newest keyframes (in the dark stretch of
-    MH04, where registration had put them 0.3-0.6 m off) 0.5 m off the truth, at a
-    scale 12 % above the stretch before; the correction fitted on them moved agent4's
-    reported pose by 0.7 m, its ATE 141 mm against its VO's 44, until the next global
-    run placed them again 7 s later."""
+    ``max_step``: None too when the fit's scale differs from that of the settled
+    keyframes just before them (fitted the same way) by more than this
+    (:func:`estimate_from_poses` asks so)."""
     idx = np.nonzero(np.asarray(optimized, bool))[0]
     span = _settled_span(T_l, idx, n, spread)
     if span is None:
         return None
     S = fit_sim3_poses(T_l[span], T_m[span])
     before = _settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
-    if S is not None and before is not None:
+    if S is not None and max_step is not None and before is not None:
         S0 = fit_sim3_poses(T_l[before], T_m[before])
-        if S0 is not None and abs(S.s / S0.s - 1.0) > MAX_SCALE_STEP:
+        if S0 is not None and abs(S.s / S0.s - 1.0) > max_step:
             return None
     return S
 
@@ -269,7 +265,18 @@ def estimate_from_poses(
     if anchor_count(T_l[:, :3, 3]) is None:
         return None
     A_m_l = fit_frame(T_l, T_m, settled)
-    S_m_l = fit_settled(T_l, T_m, settled, n_local)
+    # A settled stretch whose scale steps away from the one before it is a settle gone
+    # wrong, not drift (a VO's scale drifts slowly): the agent keeps its last correction
+    # until an optimization places those keyframes again. In a team5 run a windowed BA
+    # settled agent4's newest keyframes (in the dark stretch of MH04, where registration
+    # had put them 0.3-0.6 m off) 0.5 m off the truth, at a scale 12 % above the stretch
+    # before; the correction fitted on them moved agent4's reported pose by 0.7 m, its
+    # ATE 141 mm against its VO's 44 (36.6 mm replayed with this check). Only here: in
+    # settled_scale, whose fit sets the scale registration chains new keyframes at, the
+    # same check left the handler at a stale scale after each such step, the next
+    # keyframes were registered off it, and the seed-1 pair's agent1 went from 7 to
+    # 24 and 70 mm in two runs (01442d0).
+    S_m_l = fit_settled(T_l, T_m, settled, n_local, max_step=MAX_SCALE_STEP)
     if A_m_l is None or S_m_l is None:
         return None
     S_g_l = A_m_l.inverse() @ S_m_l
