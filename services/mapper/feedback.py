@@ -110,8 +110,12 @@ def fit_settled(
     if span is None:
         return None
     S = fit_sim3_poses(T_l[span], T_m[span])
+    if S is None or max_step is None:
+        return S
+    # The stretch before is looked for only when asked: settled_scale fits once per
+    # correction and agent under the map's lock, the frame correction per chunk.
     before = _settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
-    if S is not None and max_step is not None and before is not None:
+    if before is not None:
         S0 = fit_sim3_poses(T_l[before], T_m[before])
         if S0 is not None and abs(S.s / S0.s - 1.0) > max_step:
             return None
