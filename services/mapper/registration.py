@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shared import feedback_dump
 from shared.camera import PinholeRadTan
 from shared.geometry import Sim3, scale_translation, se3_inv, transform_points
 from shared.ids import gid, in_sorted, local_id_of
@@ -402,6 +403,7 @@ class AgentHandler:
         pts = list(map(self.smap.mps.get, mp.tolist()))
         known = np.fromiter((p is not None for p in pts), dtype=bool, count=len(pts)) & has
         T = T_init
+        lam0, r = self.lam, None
         if self.params.refine_poses and known.sum() >= 20:
             P = np.concatenate([pts[j].pos for j in np.nonzero(known)[0].tolist()]).reshape(-1, 3)
             r = refine_pose(T_init, xy[known], P, cam.fx)
@@ -421,6 +423,13 @@ class AgentHandler:
                 ):
                     lam_hat = np.linalg.norm((se3_inv(T_pred) @ T)[:3, 3]) / t_hat
                     self.lam += self._kappa(kf) * (lam_hat - self.lam)
+        if feedback_dump.enabled():
+            feedback_dump.record(
+                "mapper", "reg", agent=self.agent, kf=kf.id, stamp_ns=kf.stamp_ns,
+                T_init=T_init, T=T, known=int(known.sum()), lam0=lam0, lam=self.lam,
+                accepted=bool(r is not None and r.accepted),
+                inliers=int(r.inliers.sum()) if r is not None else 0,
+            )  # fmt: skip
         # This keyframe's own new points (they normally come in the same batch) are
         # created before it is inserted, so add_keyframe attaches them together with
         # its other observations instead of one add_observation each.
