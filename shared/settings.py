@@ -167,6 +167,7 @@ class MapperSettings(BaseModel):
     # replayed team5 run: 10 -> -25 % reported ATE against the VO, 60 -> -10 %); 0 sends none.
     feedback_correction_kfs: int = Field(10, ge=0)
     refine_poses: bool = True
+    refine_settled_only: bool = False
     scale_correction: bool = True
     kappa: float = Field(0.05, gt=0, le=1)
     fuse: bool = True

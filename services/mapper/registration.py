@@ -51,6 +51,7 @@ class MapperParams:
     from ``MapperSettings``."""
 
     refine_poses: bool = default_of(MapperSettings, "refine_poses")
+    refine_settled_only: bool = default_of(MapperSettings, "refine_settled_only")
     scale_correction: bool = default_of(MapperSettings, "scale_correction")
     kappa: float = default_of(MapperSettings, "kappa")
     min_scale_baseline: float = 0.05  # map units of odometry translation to learn scale from
@@ -59,8 +60,8 @@ class MapperParams:
 
     @classmethod
     def from_settings(cls, m: MapperSettings) -> MapperParams:
-        return cls(refine_poses=m.refine_poses, scale_correction=m.scale_correction,
-                   kappa=m.kappa, fuse=m.fuse)  # fmt: skip
+        return cls(refine_poses=m.refine_poses, refine_settled_only=m.refine_settled_only,
+                   scale_correction=m.scale_correction, kappa=m.kappa, fuse=m.fuse)  # fmt: skip
 
 
 @dataclass
@@ -404,14 +405,21 @@ class AgentHandler:
         known = np.fromiter((p is not None for p in pts), dtype=bool, count=len(pts)) & has
         T = T_init
         lam0, r = self.lam, None
-        if self.params.refine_poses and known.sum() >= 20:
-            P = np.concatenate([pts[j].pos for j in np.nonzero(known)[0].tolist()]).reshape(-1, 3)
-            r = refine_pose(T_init, xy[known], P, cam.fx)
+        use = known
+        if self.params.refine_settled_only and known.any():
+            kfs = self.smap.kfs
+            use = known.copy()
+            for j in np.nonzero(known)[0].tolist():
+                ref = kfs.get(pts[j].ref_kf)
+                use[j] = ref is not None and (ref.optimized or ref.agent != self.agent)
+        if self.params.refine_poses and use.sum() >= 20:
+            P = np.concatenate([pts[j].pos for j in np.nonzero(use)[0].tolist()]).reshape(-1, 3)
+            r = refine_pose(T_init, xy[use], P, cam.fx)
             if r.accepted:
                 T = r.T_m_c
                 res.refined += 1
                 # Observations the refined pose cannot explain are not attached.
-                idx = np.nonzero(known)[0]
+                idx = np.nonzero(use)[0]
                 known[idx[~r.inliers]] = False
             if self.params.scale_correction and kf.pred_id >= 0:
                 T_pred = self.kf_pose(kf.pred_id)
@@ -426,7 +434,8 @@ class AgentHandler:
         if feedback_dump.enabled():
             feedback_dump.record(
                 "mapper", "reg", agent=self.agent, kf=kf.id, stamp_ns=kf.stamp_ns,
-                T_init=T_init, T=T, known=int(known.sum()), lam0=lam0, lam=self.lam,
+                T_init=T_init, T=T, known=int(known.sum()), used=int(use.sum()), lam0=lam0,
+                lam=self.lam,
                 accepted=bool(r is not None and r.accepted),
                 inliers=int(r.inliers.sum()) if r is not None else 0,
             )  # fmt: skip
