@@ -167,7 +167,10 @@ class MapperSettings(BaseModel):
     # replayed team5 run: 10 -> -25 % reported ATE against the VO, 60 -> -10 %); 0 sends none.
     feedback_correction_kfs: int = Field(10, ge=0)
     refine_poses: bool = True
-    refine_settled_only: bool = False
+    # ... against points of settled or other agents' keyframes only: the agent's own
+    # unsettled points came from its VO frontier and pull a keyframe wherever that went
+    # wrong (services/mapper/registration.py).
+    refine_settled_only: bool = True
     scale_correction: bool = True
     kappa: float = Field(0.05, gt=0, le=1)
     fuse: bool = True
