@@ -17,7 +17,8 @@ another agent's. The agent's own unsettled points were placed from the poses the
 gave its newest keyframes, and its VO tracked against the same points (its local BA
 made them agree), so a refinement against them finds nothing the chain lacks except
 where that frontier went wrong, and then follows it. Recorded in a team5 run (bench/results/
-team5_dump_e09623c.json, the registration records of HIVEMAP_FEEDBACK_DUMP): of the
+team5_dump_e09623c.json, the registration records of HIVEMAP_FEEDBACK_DUMP,
+bench/registration_errors.py): of the
 refinements accepted against all points, 2-47 % per agent moved the keyframe closer to
 the truth, the median 12-52 mm further; ``lam`` learned 0.79-1.38 from them; new
 keyframes of agents 3-5 sat up to 0.18 / 0.34 / 0.42 m off (the median of a 10 s
