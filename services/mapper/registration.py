@@ -16,15 +16,16 @@ Only points that carry what the agent's VO does not know refine a keyframe
 another agent's. The agent's own unsettled points were placed from the poses the chain
 gave its newest keyframes, and its VO tracked against the same points (its local BA
 made them agree), so a refinement against them finds nothing the chain lacks except
-where that frontier went wrong, and then follows it. Recorded in a team5 run (bench/results/
-team5_dump_e09623c.json, the registration records of HIVEMAP_FEEDBACK_DUMP,
-bench/registration_errors.py): of the
-refinements accepted against all points, 2-47 % per agent moved the keyframe closer to
-the truth, the median 12-52 mm further; ``lam`` learned 0.79-1.38 from them; new
-keyframes of agents 3-5 sat up to 0.18 / 0.34 / 0.42 m off (the median of a 10 s
-window), and windowed BAs settled them there. Against settled points only
-(t5_rso_c1.json), 3-10 refinements per agent were accepted, half of them better,
-the frontier at most 19-45 mm off, every agent's reported pose below its VO.
+where that frontier went wrong, and then follows it. Recorded in a team5 run
+(bench/results/team5_dump_e09623c.json; the registration records of
+HIVEMAP_FEEDBACK_DUMP, scored by bench/registration_errors.py): of the refinements
+accepted against all points, 0-47 % per agent moved the keyframe closer to the truth,
+the median 1-52 mm further; ``lam`` learned 0.79-1.38 from them; new keyframes of
+agents 3-5 sat up to 0.18 / 0.34 / 0.42 m off (the median of a 10 s window), windowed
+BAs settled them there, and three agents' reported poses ended above their VO.
+Against settled points only (t5_rso_c1.json, team5_8bc2e35.json), 3-10 refinements
+per agent were accepted, half of them better, and every agent's reported pose was
+below its VO in both runs.
 
 A keyframe whose predecessor and parent are both missing waits (unacknowledged, so the
 agent resends it); after ``orphan_after_s`` it is anchored to the registered keyframe
