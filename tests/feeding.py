@@ -46,9 +46,12 @@ def feed_mapper(svc: MapperService, agent: str, sim: SimAgent) -> None:
     feed(agent, sim, apply)
 
 
-def feed_handler(handler: AgentHandler, sim: SimAgent) -> Trajectory:
+def feed_handler(
+    handler: AgentHandler, sim: SimAgent, after: Callable[[int], None] | None = None
+) -> Trajectory:
     """Every keyframe of ``sim`` into ``handler`` (then fused); returns the agent's own
-    (VO) keyframe trajectory."""
+    (VO) keyframe trajectory, in keyframe id order (ids count from 0). ``after(kf_id)``
+    is called once each keyframe is in, before the next one comes."""
     est = {}
 
     def apply(msg, t, step):
@@ -56,6 +59,8 @@ def feed_handler(handler: AgentHandler, sim: SimAgent) -> Trajectory:
         est[kf.kf.id] = (kf.kf.stamp_ns, kf.kf.T_l_kf)
         res = handler.ingest(msg, t)
         handler.fuse_new()
+        if after is not None:
+            after(kf.kf.id)
         return Ack(handler.agent, "m", np.array(res.ack_kf_ids, np.int64),
                    np.array(res.ack_mp_ids, np.int64), 0, 0)  # fmt: skip
 

@@ -452,7 +452,8 @@ class AgentHandler:
         if feedback_dump.enabled():
             feedback_dump.record(
                 "mapper", "reg", agent=self.agent, kf=kf.id, stamp_ns=kf.stamp_ns,
-                T_init=T_init, T=T, known=int(known.sum()), used=int(use.sum()), lam0=lam0,
+                T_init=T_init, T=T, attached=int(known.sum()), refined_on=int(use.sum()),
+                lam0=lam0,
                 lam=self.lam,
                 accepted=bool(r is not None and r.accepted),
                 inliers=int(r.inliers.sum()) if r is not None else 0,
