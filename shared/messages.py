@@ -734,6 +734,9 @@ class OptimizeRequest(_Record):
     - ``S_loop[i]`` for loop edge ``loops[i] = (a, b)``: Sim(3) ``S_a_b`` as
       ``[[s R, t], [0, 1]]``, mapping points in keyframe b's camera frame into keyframe
       a's camera frame (``p_a = s R p_b + t``).
+    - ``odo[i] = (a, b)`` (optional): the VO's relative pose ``T_odo[i]`` of keyframe b
+      in keyframe a's camera (SE(3), map units), with standard deviations
+      ``odo_sigma[i]`` (rotation in rad, translation); all three or none.
     - ``mp_ref``: gid of each point's reference keyframe; ``obs_kf``/``obs_mp`` index
       ``kf_gids``/``mp_gids``; ``obs_xy``: undistorted normalized image coordinates;
       ``fx``: focal length in pixels (observation noise is 1.2**octave / fx).
@@ -750,7 +753,11 @@ class OptimizeRequest(_Record):
         "mp_ref": ("<i8", ("mp_gids",)),
         "obs_kf": ("<i4", (None,)), "obs_mp": ("<i4", ("obs_kf",)),
         "obs_xy": ("<f8", ("obs_kf", 2)), "obs_octave": ("|u1", ("obs_kf",)),
+        "odo": ("<i8", (None, 2)), "T_odo": ("<f8", ("odo", 4, 4)),
+        "odo_sigma": ("<f8", ("odo", 2)),
     }  # fmt: skip
+    # Added within v1: VO relative-pose edges for a windowed BA (reason "local").
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("odo", "T_odo", "odo_sigma")
     map_id: str
     version: int
     reason: str
@@ -769,6 +776,9 @@ class OptimizeRequest(_Record):
     obs_mp: np.ndarray
     obs_xy: np.ndarray
     obs_octave: np.ndarray
+    odo: np.ndarray | None = None
+    T_odo: np.ndarray | None = None
+    odo_sigma: np.ndarray | None = None
 
     @property
     def n_kf(self) -> int:
@@ -804,6 +814,14 @@ class OptimizeRequest(_Record):
             errs.append("fixed_gids name unknown keyframes")
         if self.S_loop.shape != (len(self.loops), 4, 4):
             errs.append("S_loop shape")
+        odo = (self.odo, self.T_odo, self.odo_sigma)
+        if any(a is not None for a in odo):
+            if any(a is None for a in odo):
+                errs.append("odo, T_odo and odo_sigma: all three or none")
+            elif self.odo.size and not set(self.odo.ravel().tolist()) <= known:
+                errs.append("odo names unknown keyframes")
+            elif self.odo_sigma.size and not (self.odo_sigma > 0).all():
+                errs.append("odo_sigma not positive")
         if len(np.unique(self.kf_gids)) != K or len(np.unique(self.mp_gids)) != M:
             errs.append("duplicate gids")
         return errs

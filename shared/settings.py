@@ -192,6 +192,9 @@ class MapperSettings(BaseModel):
     # reported-pose ATE summed over the team -24.1 / -11.2 % (seed-1 pair, two runs),
     # -33.5 % (team3), -23.6 % (team5) against the raw VO, every agent at or below its VO.
     settle_window_kfs: int = Field(8, ge=0)
+    # A windowed BA holds the window's keyframes to their agents' VO relative motion
+    # (services/mapper/capture.py window_odometry), softly.
+    window_odometry: bool = False
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.

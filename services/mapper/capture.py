@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.camera import EUROC_FX
+from shared.geometry import se3_inv
 from shared.messages import OptimizeRequest
 
 from .server_map import STRONG, ServerMap
@@ -49,6 +50,71 @@ class MapCapture:
     points: dict  # gid -> ServerMapPoint (shallow copy; a position is replaced, not edited)
     loops: list[tuple[int, int, np.ndarray]]
     fixed: list[int]
+    odometry: Odometry | None = None
+
+
+@dataclass
+class Odometry:
+    """Relative-pose factors from the agents' own VO for a windowed BA: edge ``i``
+    says keyframe ``pairs[i, 1]`` sits at ``T_rel[i]`` (SE(3), its camera in
+    ``pairs[i, 0]``'s, translation in map units) with standard deviations
+    ``sigma[i] = (rotation rad, translation map units)``."""
+
+    pairs: np.ndarray  # (E, 2) gids
+    T_rel: np.ndarray  # (E, 4, 4)
+    sigma: np.ndarray  # (E, 2)
+
+
+# The VO's relative motion between an agent's neighbouring keyframes, as a windowed BA's
+# prior: rotation to this (rad), translation to this share of the step (plus a floor in
+# map units). The step is taken to map units at the agent's own map/VO ratio over the
+# window's neighbouring pairs (median), which registration chained it at.
+ODO_ROT_SIGMA = np.deg2rad(0.3)
+ODO_TRANS_SHARE = 0.05
+ODO_TRANS_FLOOR = 0.002
+ODO_MIN_STEP = 1e-6
+
+
+def window_odometry(smap: ServerMap, gids: list[int], free: set[int]) -> Odometry | None:
+    """VO relative-pose edges between each free keyframe of ``gids`` and the same
+    agent's previous keyframe among ``gids`` (free or fixed).
+
+    A windowed BA places the newest keyframes from points that mostly only they see;
+    where those are few or badly spread it can settle them off the VO's own shape, and
+    the frame correction is fitted on what it settled (services/mapper/feedback.py).
+    The VO's relative motion over a few keyframes is the best the system knows of it,
+    so the window is held to it, softly (the BA's kernel is robust)."""
+    by_agent: dict[str, list] = {}
+    for g in gids:
+        k = smap.kfs[g]
+        by_agent.setdefault(k.agent, []).append(k)
+    pairs, rels, sig = [], [], []
+    for kfs in by_agent.values():
+        if len(kfs) < 2:
+            continue
+        kfs.sort(key=lambda k: (k.stamp_ns, k.id))
+        Tl = np.stack([k.T_l_kf for k in kfs])
+        Tm = np.stack([k.T_m_kf for k in kfs])
+        dl = np.linalg.norm(np.diff(Tl[:, :3, 3], axis=0), axis=1)
+        dm = np.linalg.norm(np.diff(Tm[:, :3, 3], axis=0), axis=1)
+        ok = dl > ODO_MIN_STEP
+        if not ok.any():
+            continue
+        s = float(np.median(dm[ok] / dl[ok]))
+        if not np.isfinite(s) or s <= 0:
+            continue
+        for i in range(1, len(kfs)):
+            if kfs[i].gid not in free:
+                continue
+            T = se3_inv(Tl[i - 1]) @ Tl[i]
+            T[:3, 3] *= s
+            pairs.append((kfs[i - 1].gid, kfs[i].gid))
+            rels.append(T)
+            sig.append((ODO_ROT_SIGMA, ODO_TRANS_SHARE * s * dl[i - 1] + ODO_TRANS_FLOOR))
+    if not pairs:
+        return None
+    return Odometry(np.array(pairs, np.int64), np.array(rels, np.float64),
+                    np.array(sig, np.float64))  # fmt: skip
 
 
 def capture_map(
@@ -145,7 +211,14 @@ def build_request(
         obs_mp=pos[ok].astype(np.int32),
         obs_xy=oxy[ok].reshape(-1, 2),
         obs_octave=ooct[ok].astype(np.uint8),
+        **_odometry_fields(cap.odometry),
     )
+
+
+def _odometry_fields(odo: Odometry | None) -> dict:
+    if odo is None:
+        return {}
+    return {"odo": odo.pairs, "T_odo": odo.T_rel, "odo_sigma": odo.sigma}
 
 
 def request_from_map(
@@ -174,7 +247,10 @@ WINDOW_MAX_FIXED = 60
 
 
 def capture_window(
-    smap: ServerMap, max_free: int = WINDOW_MAX_FREE, max_fixed: int = WINDOW_MAX_FIXED
+    smap: ServerMap,
+    max_free: int = WINDOW_MAX_FREE,
+    max_fixed: int = WINDOW_MAX_FIXED,
+    odometry: bool = False,
 ) -> MapCapture | None:
     """A copy of the part of ``smap`` its unsettled keyframes (``optimized`` False) touch,
     for a windowed BA (ORB-SLAM's local BA): the newest ``max_free`` of them free, the
@@ -208,4 +284,8 @@ def capture_window(
     fixed = {g for g, _ in shared.most_common(max_fixed)}
     if len(fixed) < 2:
         return None
-    return _capture(smap, sorted(free_g | fixed), pts, [], sorted(fixed))
+    gids = sorted(free_g | fixed)
+    cap = _capture(smap, gids, pts, [], sorted(fixed))
+    if odometry:
+        cap.odometry = window_odometry(smap, gids, free_g)
+    return cap

@@ -177,6 +177,7 @@ class Collaboration:
         settle_after_kfs: int = default_of(MapperSettings, "settle_after_kfs"),
         settle_window_kfs: int = default_of(MapperSettings, "settle_window_kfs"),
         local_ba_time_budget_s: float = default_of(OptimizerSettings, "local_ba_time_budget_s"),
+        window_odometry: bool = default_of(MapperSettings, "window_odometry"),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -219,6 +220,7 @@ class Collaboration:
         self.settle_kfs = settle_after_kfs
         # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
         self.settle_window_kfs = settle_window_kfs
+        self.window_odometry = window_odometry  # VO relative-pose edges in a window
         self.local_budget_s = local_ba_time_budget_s  # the optimizer's for a windowed BA
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
@@ -612,7 +614,7 @@ class Collaboration:
             with reg.lock(map_id):
                 if local:
                     # A windowed BA (capture_window); what it leaves out stays put.
-                    cap = capture_window(smap)
+                    cap = capture_window(smap, odometry=self.window_odometry)
                     keep = set(smap.kfs)
                 else:
                     loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])

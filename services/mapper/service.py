@@ -374,6 +374,7 @@ class MapperService:
             settings.mapper.optimize_min_interval_s,
             settle_after_kfs=settings.mapper.settle_after_kfs,
             settle_window_kfs=settings.mapper.settle_window_kfs,
+            window_odometry=settings.mapper.window_odometry,
             local_ba_time_budget_s=settings.optimizer.local_ba_time_budget_s,
         )
         m = settings.mapper

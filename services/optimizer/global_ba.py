@@ -175,6 +175,32 @@ def _optimizer(graph, values, ordering, p: BAParams) -> gtsam.LevenbergMarquardt
     return gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
 
 
+CHI2_6DOF_95 = 12.592
+
+
+def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray,
+                  cam_key: np.ndarray) -> int:  # fmt: skip
+    """The request's VO relative-pose edges (a windowed BA's, see
+    services/mapper/capture.py ``window_odometry``) between keyframes both in the graph,
+    under a Huber kernel at the 6-DoF 95 % chi2; how many were added."""
+    if snap.odo is None or not len(snap.odo):
+        return 0
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(CHI2_6DOF_95)))
+    n = 0
+    for (a, b), T, (sr, st) in zip(snap.odo.tolist(), snap.T_odo, snap.odo_sigma.tolist(),
+                                   strict=True):  # fmt: skip
+        ia, ib = idx.get(int(a)), idx.get(int(b))
+        if ia is None or ib is None or not (kf_ok[ia] and kf_ok[ib]):
+            continue
+        noise = gtsam.noiseModel.Robust.Create(
+            huber, gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, st, st, st]))
+        )
+        graph.add(gtsam.BetweenFactorPose3(int(cam_key[ia]), int(cam_key[ib]),
+                                           gtsam.Pose3(T), noise))  # fmt: skip
+        n += 1
+    return n
+
+
 def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> CorrectionMsg:
     """Global BA over ``snap``; returns refined poses and points (keyframes left out of
     the graph keep their pose, points left out move rigidly with their reference
@@ -237,6 +263,7 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
                 gtsam.noiseModel.Isotropic.Sigma(1, p.range_sigma_rel * d0)))  # fmt: skip
         else:
             partner = -1
+    n_odo = _add_odometry(graph, snap, idx, kf_ok, cam_key)
     t_build = time.perf_counter() - t0
 
     rp0 = reprojection(snap.T_m_kf, snap.mp_pos, snap)
@@ -317,6 +344,7 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
         "ba_points": int(len(pts)),
         "ba_observations": int(obs_ok.sum()),
         "ba_outliers": int(out.sum()),
+        "ba_odometry_edges": n_odo,
         "ba_gauge": {"fixed": [int(snap.kf_gids[i]) for i in fixed],
                      "range_to": int(snap.kf_gids[partner]) if partner >= 0 else None},
     }  # fmt: skip
