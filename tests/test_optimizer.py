@@ -426,3 +426,66 @@ def test_gtsam_similarity3_convention_is_as_documented():
     assert M[3, 3] == pytest.approx(0.5)
     p = np.array([0.5, -1.0, 2.0])
     assert np.allclose(g.transformFrom(p), 2.0 * (M[:3, :3] @ p + M[:3, 3]))
+
+
+# --- VO relative motion in a windowed BA -------------------------------------------------
+
+
+def test_window_odometry_edges_follow_the_vo_at_the_agents_map_scale():
+    """capture.window_odometry: one edge per free keyframe to the same agent's previous
+    keyframe in the window, the VO's relative pose with its translation taken to map
+    units at the agent's map/VO ratio."""
+    from services.mapper.capture import window_odometry
+
+    m, Ts, _ = _server_map(n_kf=6)
+    for k in m.kfs.values():
+        k.T_l_kf = scale_translation(k.T_m_kf, 0.5)  # the VO's unit is twice the map's
+    odo = window_odometry(m, sorted(m.kfs), free={3, 4, 5})
+    assert odo is not None
+    assert odo.pairs.tolist() == [[2, 3], [3, 4], [4, 5]]
+    for (a, b), T in zip(odo.pairs.tolist(), odo.T_rel, strict=True):
+        np.testing.assert_allclose(T, se3_inv(Ts[a]) @ Ts[b], atol=1e-12)
+    assert (odo.sigma > 0).all()
+    # Another agent's keyframes are never linked to A's.
+    m.kfs[4].agent = "B"
+    assert window_odometry(m, sorted(m.kfs), free={3, 4, 5}).pairs.tolist() == [[2, 3], [3, 5]]
+
+
+def test_vo_edges_hold_a_windows_poorly_seen_keyframes_to_the_vo():
+    """A window whose free keyframes see few of their points, through 3 px of noise:
+    the BA alone places them where that noise puts them; with the VO's relative motion as
+    edges (here the true one) they come out closer to the truth, and the request with
+    its edges survives the wire."""
+    snap, T, P, _ = _ba_scene(seed=5)
+    rng = np.random.default_rng(7)
+    n_fixed = 10
+    T0 = snap.T_m_kf.copy()
+    T0[:n_fixed] = T[:n_fixed]
+    free_obs = snap.obs_kf >= n_fixed
+    xy = snap.obs_xy.copy()
+    xy[free_obs] += rng.normal(0, 3.0, (int(free_obs.sum()), 2)) / FX
+    keep = ~free_obs | (rng.random(len(xy)) < 0.15)  # and few of them
+    win = replace(snap, T_m_kf=T0, obs_xy=xy[keep], obs_kf=snap.obs_kf[keep],
+                  obs_mp=snap.obs_mp[keep], obs_octave=snap.obs_octave[keep],
+                  fixed_gids=snap.kf_gids[:n_fixed].copy())  # fmt: skip
+    ks = np.arange(n_fixed, len(T))
+    pairs = np.column_stack([snap.kf_gids[ks - 1], snap.kf_gids[ks]])
+    rel = np.array([se3_inv(T[k - 1]) @ T[k] for k in ks])
+    step = np.linalg.norm(rel[:, :3, 3], axis=1)
+    sig = np.column_stack([np.full(len(ks), np.deg2rad(0.3)), 0.05 * step + 0.002])
+    with_odo = OptimizeRequest.decode(replace(win, odo=pairs, T_odo=rel, odo_sigma=sig).encode())
+    assert with_odo.check() == [] and with_odo.odo.tolist() == pairs.tolist()
+    assert OptimizeRequest.decode(win.encode()).odo is None
+    bad = replace(with_odo, odo=pairs + 10_000)
+    assert "odo names unknown keyframes" in bad.check()
+
+    def err(corr) -> float:
+        d = corr.T_m_kf[n_fixed:, :3, 3] - T[n_fixed:, :3, 3]
+        return float(np.sqrt((d**2).sum(1).mean()))
+
+    plain = bundle_adjust(win, BAParams(max_iters=30))
+    held = bundle_adjust(with_odo, BAParams(max_iters=30))
+    assert plain.stats["ba_odometry_edges"] == 0
+    assert held.stats["ba_odometry_edges"] == len(ks)
+    assert err(held) < 0.7 * err(plain), (err(plain), err(held))
+    print(f"free keyframes' error {1e3 * err(plain):.2f} -> {1e3 * err(held):.2f} mm-units")
