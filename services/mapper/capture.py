@@ -73,6 +73,9 @@ ODO_ROT_SIGMA = np.deg2rad(0.3)
 ODO_TRANS_SHARE = 0.05
 ODO_TRANS_FLOOR = 0.002
 ODO_MIN_STEP = 1e-6
+# Only keyframes this close in the agent's own sequence are linked (a longer stretch of
+# VO has drifted in rotation too; the rotation's sigma grows with the square root).
+ODO_MAX_GAP = 10
 
 
 def window_odometry(smap: ServerMap, gids: list[int], free: set[int]) -> Odometry | None:
@@ -104,13 +107,15 @@ def window_odometry(smap: ServerMap, gids: list[int], free: set[int]) -> Odometr
         if not np.isfinite(s) or s <= 0:
             continue
         for i in range(1, len(kfs)):
-            if kfs[i].gid not in free:
+            gap = kfs[i].id - kfs[i - 1].id  # the agent's keyframes in between
+            if kfs[i].gid not in free or not 0 < gap <= ODO_MAX_GAP:
                 continue
             T = se3_inv(Tl[i - 1]) @ Tl[i]
             T[:3, 3] *= s
             pairs.append((kfs[i - 1].gid, kfs[i].gid))
             rels.append(T)
-            sig.append((ODO_ROT_SIGMA, ODO_TRANS_SHARE * s * dl[i - 1] + ODO_TRANS_FLOOR))
+            sig.append((ODO_ROT_SIGMA * np.sqrt(gap),
+                        ODO_TRANS_SHARE * s * dl[i - 1] + ODO_TRANS_FLOOR))  # fmt: skip
     if not pairs:
         return None
     return Odometry(np.array(pairs, np.int64), np.array(rels, np.float64),
