@@ -195,6 +195,8 @@ class MapperSettings(BaseModel):
     # A windowed BA holds the window's keyframes to their agents' VO relative motion
     # (services/mapper/capture.py window_odometry), softly.
     window_odometry: bool = False
+    # ... its translation to this share of the step (the rotation to 0.3 degrees).
+    window_odometry_trans_share: float = Field(0.05, gt=0)
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.

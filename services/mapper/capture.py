@@ -78,7 +78,9 @@ ODO_MIN_STEP = 1e-6
 ODO_MAX_GAP = 10
 
 
-def window_odometry(smap: ServerMap, gids: list[int], free: set[int]) -> Odometry | None:
+def window_odometry(
+    smap: ServerMap, gids: list[int], free: set[int], trans_share: float = ODO_TRANS_SHARE
+) -> Odometry | None:
     """VO relative-pose edges between each free keyframe of ``gids`` and the same
     agent's previous keyframe among ``gids`` (free or fixed).
 
@@ -115,7 +117,7 @@ def window_odometry(smap: ServerMap, gids: list[int], free: set[int]) -> Odometr
             pairs.append((kfs[i - 1].gid, kfs[i].gid))
             rels.append(T)
             sig.append((ODO_ROT_SIGMA * np.sqrt(gap),
-                        ODO_TRANS_SHARE * s * dl[i - 1] + ODO_TRANS_FLOOR))  # fmt: skip
+                        trans_share * s * dl[i - 1] + ODO_TRANS_FLOOR))  # fmt: skip
     if not pairs:
         return None
     return Odometry(np.array(pairs, np.int64), np.array(rels, np.float64),
@@ -256,6 +258,7 @@ def capture_window(
     max_free: int = WINDOW_MAX_FREE,
     max_fixed: int = WINDOW_MAX_FIXED,
     odometry: bool = False,
+    odometry_trans_share: float = ODO_TRANS_SHARE,
 ) -> MapCapture | None:
     """A copy of the part of ``smap`` its unsettled keyframes (``optimized`` False) touch,
     for a windowed BA (ORB-SLAM's local BA): the newest ``max_free`` of them free, the
@@ -292,5 +295,5 @@ def capture_window(
     gids = sorted(free_g | fixed)
     cap = _capture(smap, gids, pts, [], sorted(fixed))
     if odometry:
-        cap.odometry = window_odometry(smap, gids, free_g)
+        cap.odometry = window_odometry(smap, gids, free_g, odometry_trans_share)
     return cap

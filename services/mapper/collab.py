@@ -178,6 +178,9 @@ class Collaboration:
         settle_window_kfs: int = default_of(MapperSettings, "settle_window_kfs"),
         local_ba_time_budget_s: float = default_of(OptimizerSettings, "local_ba_time_budget_s"),
         window_odometry: bool = default_of(MapperSettings, "window_odometry"),
+        window_odometry_trans_share: float = default_of(
+            MapperSettings, "window_odometry_trans_share"
+        ),
     ) -> None:
         self.reg = registry
         self.store = store
@@ -221,6 +224,7 @@ class Collaboration:
         # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
         self.settle_window_kfs = settle_window_kfs
         self.window_odometry = window_odometry  # VO relative-pose edges in a window
+        self.window_odometry_trans_share = window_odometry_trans_share
         self.local_budget_s = local_ba_time_budget_s  # the optimizer's for a windowed BA
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
@@ -614,7 +618,11 @@ class Collaboration:
             with reg.lock(map_id):
                 if local:
                     # A windowed BA (capture_window); what it leaves out stays put.
-                    cap = capture_window(smap, odometry=self.window_odometry)
+                    cap = capture_window(
+                        smap,
+                        odometry=self.window_odometry,
+                        odometry_trans_share=self.window_odometry_trans_share,
+                    )
                     keep = set(smap.kfs)
                 else:
                     loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])

@@ -375,6 +375,7 @@ class MapperService:
             settle_after_kfs=settings.mapper.settle_after_kfs,
             settle_window_kfs=settings.mapper.settle_window_kfs,
             window_odometry=settings.mapper.window_odometry,
+            window_odometry_trans_share=settings.mapper.window_odometry_trans_share,
             local_ba_time_budget_s=settings.optimizer.local_ba_time_budget_s,
         )
         m = settings.mapper
