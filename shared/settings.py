@@ -193,10 +193,13 @@ class MapperSettings(BaseModel):
     # -33.5 % (team3), -23.6 % (team5) against the raw VO, every agent at or below its VO.
     settle_window_kfs: int = Field(8, ge=0)
     # A windowed BA holds the window's keyframes to their agents' VO relative motion
-    # (services/mapper/capture.py window_odometry), softly.
-    window_odometry: bool = False
-    # ... its translation to this share of the step (the rotation to 0.3 degrees).
-    window_odometry_trans_share: float = Field(0.05, gt=0)
+    # (services/mapper/capture.py window_odometry): the rotation to 0.3 degrees per
+    # keyframe step, the translation to this share of the step. At 0.05 the dark stretch
+    # of MH04 took its VO's bad scale (team5 agent4 100 mm against its VO's 44); at 1.0
+    # (a weak translation prior) every agent of the seed-1 pair, team3 and team5 came out
+    # below its VO (-21.5 / -40.5 / -31.8 %; without the edges -2.3 / -33.5 / -38.0 %).
+    window_odometry: bool = True
+    window_odometry_trans_share: float = Field(1.0, gt=0)
     # Several mappers (services/mapper/ownership.py): this one's id in map leases ("" =
     # the host name, unique per container; `hivemap up --mappers N` names them), and
     # the lease time: a dead mapper's maps are taken over within about twice it.

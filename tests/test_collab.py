@@ -567,6 +567,8 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     assert c.due(time.monotonic() + 100.0) == [(map_id, "local")]
     req = c.request(map_id, "local")
     assert req is not None and not len(req.loops)
+    # The free keyframes held to the VO's relative motion (capture.window_odometry).
+    assert req.odo is not None and set(req.odo[:, 1].tolist()) <= unsettled
     window = set(req.kf_gids.tolist())
     free = window - set(req.fixed_gids.tolist())
     assert free == unsettled or (len(free) == 60 and free <= unsettled), (len(free), len(unsettled))
@@ -578,6 +580,7 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     assert c.mark_unsettled(now) == []
     corr = run_one()
     assert corr.stats["reason"] == "local"
+    assert corr.stats["ba_odometry_edges"] > 0
     assert corr.stats["seconds"] < glob.stats["seconds"], (corr.stats, glob.stats)
     # Outside the window nothing moved, nor the points anchored there.
     for g, T in outside.items():
