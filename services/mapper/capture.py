@@ -90,10 +90,12 @@ def window_odometry(
     where those are few or badly spread it can settle them off the VO's own shape, and
     the frame correction is fitted on what it settled (services/mapper/feedback.py).
     The VO's relative motion over a few keyframes is the best the system knows of it,
-    so the window is held to it, softly (the BA's kernel is robust). Recorded team runs
-    (HIVEMAP_FEEDBACK_DUMP, bench/registration_errors.py), mean over 10 s windows of
-    the median error of new keyframes: seed-1 pair 10.5 / 9.8 mm without the edges,
-    7.3 / 8.8 with them (agent1's reported pose 10.30 -> 7.32 mm against its VO's 7.45)."""
+    so the window is held to it, softly (the BA's kernel is robust). Recorded seed-1
+    pair runs (HIVEMAP_FEEDBACK_DUMP, bench/registration_errors.py), mean over 10 s
+    windows of the median error of new keyframes: 10.5 / 9.8 mm without the edges,
+    7.3 / 8.8 with them; agent1's reported pose 10.30 and 7.32 mm against its VO's 7.45
+    in those two runs, 8.87 in a second run with the edges (one run each: the spread
+    between runs is as large as the gain)."""
     by_agent: dict[str, list] = {}
     for g in gids:
         k = smap.kfs[g]
