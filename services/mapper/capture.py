@@ -19,6 +19,7 @@ import numpy as np
 from shared.camera import EUROC_FX
 from shared.geometry import se3_inv
 from shared.messages import OptimizeRequest
+from shared.settings import MapperSettings, default_of
 
 from .server_map import STRONG, ServerMap
 
@@ -66,13 +67,12 @@ class Odometry:
 
 
 # The VO's relative motion between an agent's neighbouring keyframes, as a windowed BA's
-# prior: rotation to this (rad), translation to this share of the step (plus a floor in
-# map units). The step is taken to map units at the agent's own map/VO ratio over the
-# window's neighbouring pairs (median), which registration chained it at. The VO's turn
-# between keyframes is good everywhere; its step length is not where it drifts in scale
-# (the dark stretch of MH04), so the translation prior is weak (MapperSettings).
+# prior: rotation to this (rad), translation to a share of the step (MapperSettings
+# window_odometry_trans_share, which says why it is weak) plus a floor in map units. The
+# step is taken to map units at the agent's own map/VO ratio over the window's
+# neighbouring pairs (median), which registration chained it at.
 ODO_ROT_SIGMA = np.deg2rad(0.3)
-ODO_TRANS_SHARE = 1.0
+ODO_TRANS_SHARE = default_of(MapperSettings, "window_odometry_trans_share")
 ODO_TRANS_FLOOR = 0.002
 ODO_MIN_STEP = 1e-6
 # Only keyframes this close in the agent's own sequence are linked (a longer stretch of

@@ -44,6 +44,7 @@ from shared.settings import OptimizerSettings, default_of
 log = logging.getLogger(__name__)
 
 CHI2_2DOF_95 = 5.991
+CHI2_6DOF_95 = 12.592
 
 
 @dataclass
@@ -173,9 +174,6 @@ def _optimizer(graph, values, ordering, p: BAParams) -> gtsam.LevenbergMarquardt
     if ordering is not None:
         prm.setOrdering(ordering)
     return gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
-
-
-CHI2_6DOF_95 = 12.592
 
 
 def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray,
