@@ -1,4 +1,4 @@
-"""Overload at small scale: a mapper throttled to a quarter of the CPU it needs (stopped
+"""Overload at small scale: a mapper throttled to a sixth of the wall clock (stopped
 and continued by signals, as cpulimit does) with simulated agents that keep flying.
 
 What must hold (issue 18 item 2): no crash; the latency of what the mapper accepts stays
@@ -27,8 +27,10 @@ from shared.runtime import set_priority
 from shared.store import Store, connect
 
 HIVEMAP = str(Path(sys.executable).with_name("hivemap"))
-AGENTS = 6
-RUN_S, STOP_S = 0.03, 0.12  # the mapper gets 20 % of the wall clock
+# Eight agents at a sixth: with six at a fifth, a CI run on a fast machine kept up
+# (accepted p95 0.73 s, no batch shed) and the overload under test never happened.
+AGENTS = 8
+RUN_S, STOP_S = 0.025, 0.125  # the mapper gets 1/6 of the wall clock
 
 
 def _quantile(buckets: list[tuple[float, float]], q: float) -> float:
@@ -89,7 +91,7 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
            "HIVEMAP_ZENOH__CONNECT": json.dumps([zenoh_router]), "HIVEMAP_LOG_LEVEL": "WARNING",
            # Every keyframe must stay stored to be counted: no culling here.
            "HIVEMAP_MAPPER__REDUNDANCY": "false",
-           # Six agents: a smaller overload than the bench's 48, so batches are shed
+           # Eight agents: a smaller overload than the bench's 48, so batches are shed
            # sooner (the default is 0.5 s), or the agents' windows alone would bound the
            # queue here and the shedding (NACK, resend, the hole rule) would go untested.
            "HIVEMAP_MAPPER__SHED_AFTER_S": "0.3"}  # fmt: skip
@@ -153,7 +155,7 @@ def test_throttled_mapper_bounds_accepted_latency_and_agents_back_off(
     assert _shed(text.decode()).get("keyframe_batch", 0) > 0
     # What the mapper accepts waited at most shed_after_s (0.3 s here) in its queue; the
     # rest of its latency is the registration and store of its group, and with the mapper
-    # stopped 80 % of the time those alone take up to a second or more, so the bound here
+    # stopped 5/6 of the time those alone take up to a second or more, so the bound here
     # is the bucket above the 1 s bar (bench_ramp --overload checks 1 s at 48 agents on
     # an unthrottled mapper). Without shedding and the agents' windows the queue grew
     # with the flight (>= 10 s at 32 agents, issue 18).
