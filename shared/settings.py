@@ -163,9 +163,14 @@ class MapperSettings(BaseModel):
     feedback_rate_hz: float = Field(2.0, gt=0)
     feedback_k: int = Field(5, ge=0)
     # Chunks carry the correction of the agent's VO frame by the map (frame_correction),
-    # fitted on this many of its newest keyframes a global optimization settled (a
-    # replayed team5 run: 10 -> -25 % reported ATE against the VO, 60 -> -10 %); 0 sends none.
-    feedback_correction_kfs: int = Field(10, ge=0)
+    # fitted on this many of its newest keyframes a global optimization settled; 0 sends
+    # none. Fewer follow a fast-drifting VO closer, more average the settled frontier's
+    # own errors out (a replayed team5 run: 10 -> -25 % reported ATE against the VO, 60
+    # -> -10 %). 20 since 2026-11-27 (was 10): replayed on the same recorded map states
+    # (bench/replay_feedback.py), 20 gave a lower team sum than 10 on 5 of 6 runs of
+    # this stop (seed-1 pair x4, team3, team5: -1.8 % over all; team5 +1.3 %) and 10 of
+    # 10 of the last, and the seed-1 agent1 above its VO on 1 of 4 runs instead of 3.
+    feedback_correction_kfs: int = Field(20, ge=0)
     refine_poses: bool = True
     # ... against points of settled or other agents' keyframes only: the agent's own
     # unsettled points came from its VO frontier and pull a keyframe wherever that went

@@ -283,7 +283,10 @@ def test_a_correction_well_above_the_scatter_of_its_estimates_is_applied():
     vo = np.array([r[0] for r in rows[2:]])
     est = np.array([r[1] for r in rows[2:]])
     sent = np.array([r[2] for r in rows[2:]])
-    assert vo.mean() > 0.03 and est.mean() < 0.2 * vo.mean(), (vo.mean(), est.mean())
+    # The fit over 20 keyframes (the default) leaves 21 % of this fast drift at the newest
+    # keyframe, over 10 it left 14 % (sent: 33 and 25 %): a longer fit follows a drifting
+    # VO less closely, the price of averaging the map's own errors out (settings.py).
+    assert vo.mean() > 0.03 and est.mean() < 0.25 * vo.mean(), (vo.mean(), est.mean())
     assert sent.mean() < 0.35 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
 
 
@@ -318,7 +321,8 @@ def test_oracle_replay_puts_the_truth_in_place_of_the_map():
     p_true = A.inverse().apply(T_true[-1:, :3, 3])[0]
     e_vo = np.linalg.norm(T_l[-1, :3, 3] - p_true)
     e_est = np.linalg.norm(rec["_estimate"].apply(T_l[-1:, :3, 3])[0] - p_true)
-    assert e_est < 0.1 * e_vo, (e_est, e_vo)
+    # (12 % of this fast drift left with the default 20-keyframe fit, under 10 % with 10)
+    assert e_est < 0.15 * e_vo, (e_est, e_vo)
 
 
 def test_replay_computes_what_the_server_sends():
