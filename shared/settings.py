@@ -167,9 +167,10 @@ class MapperSettings(BaseModel):
     # none. Fewer follow a fast-drifting VO closer, more average the settled frontier's
     # own errors out (a replayed team5 run: 10 -> -25 % reported ATE against the VO, 60
     # -> -10 %). 20 since 2026-11-27 (was 10): replayed on the same recorded map states
-    # (bench/replay_feedback.py), 20 gave a lower team sum than 10 on 5 of 6 runs of
-    # this stop (seed-1 pair x4, team3, team5: -1.8 % over all; team5 +1.3 %) and 10 of
-    # 10 of the last, and the seed-1 agent1 above its VO on 1 of 4 runs instead of 3.
+    # (bench/replay_feedback.py) of eight runs (seed-1 pair x4, team3, team5, team5 with
+    # 1 s delay, team3 with 50 % loss), the sum over their 24 agents was the same (330.1
+    # vs 331.0 mm; team5 +1.3 % and +4.3 % with delay, the others lower) and one agent
+    # was above its VO instead of three (the seed-1 agent1: 1 of 4 runs instead of 3).
     feedback_correction_kfs: int = Field(20, ge=0)
     refine_poses: bool = True
     # ... against points of settled or other agents' keyframes only: the agent's own
