@@ -29,8 +29,9 @@ MIN_SPREAD = 0.01  # of the scene depth: the centres' spread that fixes a scale
 # is least right at its ends, i.e. where the agent is: with the final map of a team3
 # run (frames 0:1500), reported poses corrected through a 60-keyframe fit were worse
 # than the raw VO for two of three agents (4.53 / 5.73 / 12.14 mm vs 4.54 / 3.72 /
-# 13.51), through a 10-keyframe fit better for all three (4.00 / 3.62 / 8.64 mm). Now
-# 20 (MapperSettings.feedback_correction_kfs says why), this is its default.
+# 13.51), through a 10-keyframe fit better for all three (4.00 / 3.62 / 8.64 mm). The
+# default is 20 now: the setting this takes (MapperSettings.feedback_correction_kfs)
+# says why.
 LOCAL_FIT_KFS: int = default_of(MapperSettings, "feedback_correction_kfs")
 # No correction until the agent's keyframes reach a spread (anchor_count): at least
 # ANCHOR_KFS, and as many more as it takes for their centres to spread ANCHOR_SPREAD
