@@ -53,6 +53,12 @@ def test_viewer_shows_the_team(tmp_path):
             )  # fmt: skip
             a = _drawn(page)
             assert set(a["poses"]) == {"red", "blue"}
+            # Agents named after a colour are drawn in it (they were drawn by order of
+            # arrival before: "blue" came out pink).
+            rgb = {k: [int(v) for v in c[4:-1].split(",")]
+                   for k, c in page.evaluate("hivemapViewer.colours").items()}  # fmt: skip
+            assert rgb["red"][0] > max(rgb["red"][1:]) + 100, rgb
+            assert rgb["blue"][2] > max(rgb["blue"][:2]) + 100, rgb
 
             def moved(b: dict) -> dict:
                 return {agent: max(abs(x - y) for x, y in zip(

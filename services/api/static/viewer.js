@@ -15,10 +15,27 @@ const S = {
 // What the browser test reads: frames drawn, the measured rate, what is on screen.
 const stats = window.hivemapViewer = { frames: 0, fps: 0, messages: 0, drawn: { agents: 0, points: 0, poses: {} } };
 
+// An agent named after a colour ("red", "Blue") is drawn in it, lightened so that it
+// shows on the dark background; any other name takes the next palette colour. Resolved
+// once per agent and kept, so a colour never changes while the page is open.
+const COLOURS = stats.colours = {};  // agent -> CSS colour (the browser test reads it)
+const probe = document.createElement("canvas").getContext("2d");
+function namedColour(a) {
+  const name = String(a).toLowerCase();
+  if (!/^[a-z]+$/.test(name) || !CSS.supports("color", name)) return null;
+  probe.fillStyle = "#000"; probe.fillStyle = name;
+  const hex = probe.fillStyle;  // normalized to #rrggbb
+  if (!/^#[0-9a-f]{6}$/.test(hex)) return null;
+  const mix = (i) => Math.round(0.7 * parseInt(hex.slice(i, i + 2), 16) + 0.3 * 255);
+  return `rgb(${mix(1)}, ${mix(3)}, ${mix(5)})`;
+}
 function colour(a) {
-  let i = S.order.indexOf(a);
-  if (i < 0) { S.order.push(a); i = S.order.length - 1; }
-  return PALETTE[i % PALETTE.length];
+  if (!(a in COLOURS)) {
+    let c = namedColour(a);
+    if (c === null) { S.order.push(a); c = PALETTE[(S.order.length - 1) % PALETTE.length]; }
+    COLOURS[a] = c;
+  }
+  return COLOURS[a];
 }
 
 // --- connection ------------------------------------------------------------------------------
