@@ -19,7 +19,7 @@ from shared.camera import PinholeRadTan
 from shared.ids import present_in, unique_ids
 from shared.orb import hamming
 
-from .server_map import ServerKeyframe, ServerMap
+from .server_map import ServerKeyframe, ServerMap, stack_rows
 
 _pos = attrgetter("pos")
 _desc = attrgetter("descriptor")
@@ -50,7 +50,7 @@ def fuse_by_projection(
         return 0, changed, removed, aliases
     # map/attrgetter: the per-candidate lookups at C speed (thousands per keyframe).
     pts = list(map(smap.mps.__getitem__, cand.tolist()))
-    P = np.concatenate(list(map(_pos, pts))).reshape(-1, 3)
+    P = stack_rows(list(map(_pos, pts)), np.float64, 3)
     R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
     X_c = (P - t) @ R
     uv, ok = cam.project(X_c, min_depth=0.1)
@@ -69,8 +69,7 @@ def fuse_by_projection(
     cand, idx, valid = cand[reach], idx[reach], valid[reach]
     idx_safe = np.where(valid, idx, 0)
     near = list(map(pts.__getitem__, ok_idx[reach].tolist()))
-    desc_c = np.concatenate(list(map(_desc, near))).reshape(-1, 32)
-    desc_c = desc_c.astype(np.uint8, copy=False)
+    desc_c = stack_rows(list(map(_desc, near)), np.uint8, 32)
     hd = hamming(kf.descriptors[idx_safe], desc_c[:, None, :])
     hd = np.where(valid, hd, 1 << 20)
     best = hd.argmin(axis=1)
