@@ -13,7 +13,7 @@ import numpy as np
 
 from shared import feedback_dump
 from shared.geometry import Sim3, fit_sim3_poses, se3_inv, umeyama
-from shared.ids import agent_index_of, local_id_of, present_in
+from shared.ids import agent_index_of, in_sorted, local_id_of
 from shared.messages import MapChunk
 from shared.settings import MapperSettings, default_of
 
@@ -252,9 +252,14 @@ def estimate_correction(h: AgentHandler, n_local: int = LOCAL_FIT_KFS) -> Sim3 |
     kfs = [k for k in (smap.kfs.get(h.kf_gid(i)) for i in sorted(h.local_poses)) if k is not None]
     if len(kfs) < MIN_FIT_KFS:
         return None
+    settled = np.array([kf.optimized for kf in kfs], bool)
+    if settled.sum() < MIN_FIT_KFS:
+        # fit_frame has nothing to fit on, so the estimate is None: known before the
+        # poses of every keyframe of the flight are stacked (each chunk, until an
+        # optimization has settled some).
+        return None
     T_l = np.stack([k.T_l_kf for k in kfs])
     T_m = np.stack([k.T_m_kf for k in kfs])
-    settled = np.array([kf.optimized for kf in kfs], bool)
     return estimate_from_poses(T_l, T_m, settled, n_local)
 
 
@@ -381,7 +386,9 @@ def build_chunk(
     uniq, first = np.unique(allmp, return_index=True)
     mine = [smap.kfs[g].mp for g in range(lo, hi + 1) if g in smap.kfs]
     if mine:
-        keep = ~present_in(uniq, np.concatenate(mine))
+        # Sorted first: ~5k sorted ids searched in ~16k sorted ones cost an eighth of
+        # the ~16k unsorted ids' binary searches into them (present_in).
+        keep = ~in_sorted(uniq, np.sort(np.concatenate(mine)))
         uniq, first = uniq[keep], first[keep]
     order = np.argsort(first, kind="stable")
     mp_gids = uniq[order]
