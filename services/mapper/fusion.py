@@ -57,8 +57,16 @@ def fuse_by_projection(
     if not ok.any():
         return 0, changed, removed, aliases
     ok_idx = np.nonzero(ok)[0]
+    kp = kf.keypoints.astype(np.float64)
+    # Only points that may have a keypoint in reach are queried (about half): the
+    # others' queries find nothing, and each query is answered on its own, so the
+    # points that do have one get the same neighbours.
+    close = _maybe_near(kp, uv[ok_idx], radius_px)
+    ok_idx = ok_idx[close]
+    if len(ok_idx) == 0:
+        return 0, changed, removed, aliases
     cand, uv = cand[ok_idx], uv[ok_idx]
-    tree = cKDTree(kf.keypoints.astype(np.float64))
+    tree = cKDTree(kp)
     dist, idx = tree.query(uv, k=3, distance_upper_bound=radius_px)
     n_kp = len(kf.keypoints)
     valid = idx < n_kp
@@ -105,3 +113,22 @@ def fuse_by_projection(
             aliases[drop.gid] = keep.gid
             n += 1
     return n, changed, removed, aliases
+
+
+def _maybe_near(kp: np.ndarray, uv: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the points ``uv`` (N, 2) that may have a keypoint of ``kp`` (M, 2) within
+    ``radius``: a superset of those that do. On a grid of cells a little wider than
+    ``radius`` such a keypoint lies in the point's cell or one of its 8 neighbours."""
+    if len(kp) == 0 or not 0 < radius < np.inf:
+        return np.ones(len(uv), bool)
+    cell = 1.01 * radius  # the margin covers the divisions' rounding at a cell border
+    ck = np.floor(kp / cell).astype(np.int64)
+    cu = np.floor(uv / cell).astype(np.int64)
+    lo = np.minimum(ck.min(0), cu.min(0, initial=ck.min())) - 1
+    ck -= lo
+    cu -= lo
+    occ = np.zeros(np.maximum(ck.max(0), cu.max(0, initial=0)) + 2, bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            occ[ck[:, 0] + dx, ck[:, 1] + dy] = True
+    return occ[cu[:, 0], cu[:, 1]]
