@@ -127,8 +127,13 @@ def _maybe_near(kp: np.ndarray, uv: np.ndarray, radius: float) -> np.ndarray:
     lo = np.minimum(ck.min(0), cu.min(0, initial=ck.min())) - 1
     ck -= lo
     cu -= lo
-    occ = np.zeros(np.maximum(ck.max(0), cu.max(0, initial=0)) + 2, bool)
+    shape = np.maximum(ck.max(0), cu.max(0, initial=0)) + 2
+    kp_cells = np.zeros(shape, bool)
+    kp_cells[ck[:, 0], ck[:, 1]] = True
+    # Dilated by whole-grid slices (the grid is small; 9 scatters of every keypoint
+    # cost more).
+    occ = np.zeros(shape, bool)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
-            occ[ck[:, 0] + dx, ck[:, 1] + dy] = True
+            occ[1:-1, 1:-1] |= kp_cells[1 + dx : shape[0] - 1 + dx, 1 + dy : shape[1] - 1 + dy]
     return occ[cu[:, 0], cu[:, 1]]
