@@ -191,19 +191,18 @@ class ServerMap:
         """Remove a keyframe with its observations; points left with no observation go
         too (their gids are returned). Children move to their best covisible keyframe."""
         kf = self.kfs[kf_gid]
-        seen = [int(g) for g in kf.observed()]
+        seen = kf.observed().tolist()
         # Every edge of this keyframe goes, so its observations are dropped without
         # the per-observer counter updates of _unobserve (which made a removal cost
         # points x observers); the edges are cut below in one pass over its row.
         idx = np.nonzero(kf.mp >= 0)[0]
-        for j, g in zip(idx.tolist(), kf.mp[idx].tolist(), strict=True):
-            p = self.mps.get(g)
+        get = self.mps.get
+        for j, p in zip(idx.tolist(), map(get, kf.mp[idx].tolist()), strict=True):
             if p is not None and p.obs.get(kf_gid) == j:
                 del p.obs[kf_gid]
         kf.mp[idx] = NO_MP
         dead = []
-        for g in seen:
-            p = self.mps.get(g)
+        for g, p in zip(seen, map(get, seen), strict=True):
             if p is None:
                 continue
             if not p.obs:
