@@ -10,7 +10,6 @@ Keyframes the agent may still refine (its newest ones) are not candidates.
 from __future__ import annotations
 
 import random
-from operator import attrgetter
 
 import numpy as np
 
@@ -22,8 +21,6 @@ from .server_map import ServerMap
 # new poses; one culled there breaks the chain the following keyframes register through,
 # so they are left alone until the agent is done with them.
 KEEP_NEWEST = 10
-CHUNK = 64  # points whose observers is_redundant counts between two looks at the total
-_obs = attrgetter("obs")
 
 
 def is_redundant(smap: ServerMap, kf_gid: int, ratio: float = 0.98, min_others: int = 3) -> bool:
@@ -35,16 +32,14 @@ def is_redundant(smap: ServerMap, kf_gid: int, ratio: float = 0.98, min_others: 
         return False
     # Most keyframes fail within their first few dozen points: stop as soon as more
     # than (1 - ratio) of them are seen by too few others, instead of counting all.
-    # Counted a chunk at a time by map() at C speed: the count only grows, so a
-    # keyframe fails after some chunk exactly when it failed after some point.
     allowed = len(pts) - ratio * len(pts)
     bad = 0
-    few = min_others.__ge__
-    get = smap.mps.__getitem__
-    for i in range(0, len(pts), CHUNK):
-        bad += sum(map(few, map(len, map(_obs, map(get, pts[i : i + CHUNK])))))
-        if bad > allowed:
-            return False
+    mps = smap.mps
+    for g in pts:
+        if len(mps[g].obs) <= min_others:
+            bad += 1
+            if bad > allowed:
+                return False
     return True
 
 
