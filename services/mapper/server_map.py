@@ -112,9 +112,11 @@ class ServerMap:
         g = kf.gid
         idx = np.nonzero(mp >= 0)[0]
         # A second keypoint on the same point is dropped (numpy, not a Python set: this
-        # runs over every keypoint of every keyframe).
-        _, first = np.unique(mp[idx], return_index=True)
-        if len(first) < len(idx):
+        # runs over every keypoint of every keyframe). A plain sort tells whether there
+        # is one at all (almost never), at a fraction of unique's return_index.
+        s = np.sort(mp[idx])
+        if len(s) > 1 and (s[1:] == s[:-1]).any():
+            _, first = np.unique(mp[idx], return_index=True)
             dup = np.ones(len(idx), dtype=bool)
             dup[first] = False
             mp[idx[dup]] = NO_MP
