@@ -19,7 +19,7 @@ from shared.camera import PinholeRadTan
 from shared.ids import present_in, unique_ids
 from shared.orb import hamming
 
-from .server_map import ServerKeyframe, ServerMap
+from .server_map import ServerKeyframe, ServerMap, stack_rows
 
 _pos = attrgetter("pos")
 _desc = attrgetter("descriptor")
@@ -50,15 +50,23 @@ def fuse_by_projection(
         return 0, changed, removed, aliases
     # map/attrgetter: the per-candidate lookups at C speed (thousands per keyframe).
     pts = list(map(smap.mps.__getitem__, cand.tolist()))
-    P = np.concatenate(list(map(_pos, pts))).reshape(-1, 3)
+    P = stack_rows(list(map(_pos, pts)), np.float64, 3)
     R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
     X_c = (P - t) @ R
     uv, ok = cam.project(X_c, min_depth=0.1)
     if not ok.any():
         return 0, changed, removed, aliases
     ok_idx = np.nonzero(ok)[0]
+    kp = kf.keypoints.astype(np.float64)
+    # Only points that may have a keypoint in reach are queried (about half): the
+    # others' queries find nothing, and each query is answered on its own, so the
+    # points that do have one get the same neighbours.
+    close = _maybe_near(kp, uv[ok_idx], radius_px)
+    ok_idx = ok_idx[close]
+    if len(ok_idx) == 0:
+        return 0, changed, removed, aliases
     cand, uv = cand[ok_idx], uv[ok_idx]
-    tree = cKDTree(kf.keypoints.astype(np.float64))
+    tree = cKDTree(kp)
     dist, idx = tree.query(uv, k=3, distance_upper_bound=radius_px)
     n_kp = len(kf.keypoints)
     valid = idx < n_kp
@@ -69,8 +77,7 @@ def fuse_by_projection(
     cand, idx, valid = cand[reach], idx[reach], valid[reach]
     idx_safe = np.where(valid, idx, 0)
     near = list(map(pts.__getitem__, ok_idx[reach].tolist()))
-    desc_c = np.concatenate(list(map(_desc, near))).reshape(-1, 32)
-    desc_c = desc_c.astype(np.uint8, copy=False)
+    desc_c = stack_rows(list(map(_desc, near)), np.uint8, 32)
     hd = hamming(kf.descriptors[idx_safe], desc_c[:, None, :])
     hd = np.where(valid, hd, 1 << 20)
     best = hd.argmin(axis=1)
@@ -106,3 +113,27 @@ def fuse_by_projection(
             aliases[drop.gid] = keep.gid
             n += 1
     return n, changed, removed, aliases
+
+
+def _maybe_near(kp: np.ndarray, uv: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the points ``uv`` (N, 2) that may have a keypoint of ``kp`` (M, 2) within
+    ``radius``: a superset of those that do. On a grid of cells a little wider than
+    ``radius`` such a keypoint lies in the point's cell or one of its 8 neighbours."""
+    if len(kp) == 0 or not 0 < radius < np.inf:
+        return np.ones(len(uv), bool)
+    cell = 1.01 * radius  # the margin covers the divisions' rounding at a cell border
+    ck = np.floor(kp / cell).astype(np.int64)
+    cu = np.floor(uv / cell).astype(np.int64)
+    lo = np.minimum(ck.min(0), cu.min(0, initial=ck.min())) - 1
+    ck -= lo
+    cu -= lo
+    shape = np.maximum(ck.max(0), cu.max(0, initial=0)) + 2
+    kp_cells = np.zeros(shape, bool)
+    kp_cells[ck[:, 0], ck[:, 1]] = True
+    # Dilated by whole-grid slices (the grid is small; 9 scatters of every keypoint
+    # cost more).
+    occ = np.zeros(shape, bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            occ[1:-1, 1:-1] |= kp_cells[1 + dx : shape[0] - 1 + dx, 1 + dy : shape[1] - 1 + dy]
+    return occ[cu[:, 0], cu[:, 1]]

@@ -21,12 +21,15 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from operator import attrgetter
 
 import numpy as np
 
 from shared.geometry import Sim3, se3_inv
 
-from .server_map import ServerMap
+from .server_map import ServerMap, stack_rows
+
+_pos = attrgetter("pos")
 
 
 @dataclass
@@ -136,9 +139,8 @@ def points_in_camera(smap: ServerMap, kf_gid: int) -> np.ndarray:
     out = np.full((len(kf.mp), 3), np.nan)
     has = np.nonzero(kf.mp >= 0)[0]
     if len(has):
-        mps = smap.mps
-        # concatenate of the (3,) rows is several times faster than np.array of a list.
-        P = np.concatenate([mps[g].pos for g in kf.mp[has].tolist()]).reshape(-1, 3)
+        P = stack_rows(list(map(_pos, map(smap.mps.__getitem__, kf.mp[has].tolist()))),
+                       np.float64, 3)  # fmt: skip
         T = se3_inv(kf.T_m_kf)
         out[has] = P @ T[:3, :3].T + T[:3, 3]
     return out

@@ -6,23 +6,65 @@ schema; no key is named here).
 from __future__ import annotations
 
 import time
+from itertools import compress, repeat
+from operator import attrgetter, is_not
 
 import numpy as np
 
 from shared.camera import PinholeRadTan
+from shared.geometry import Sim3
 from shared.ids import agent_index_of, gid, local_id_of
 from shared.store import AgentState, Store, StoredKeyframe
 
 from .registration import AgentHandler, IngestResult, MapperParams
-from .server_map import ServerKeyframe, ServerMap, ServerMapPoint
+from .server_map import ServerKeyframe, ServerMap, ServerMapPoint, stack_rows
+
+_pos = attrgetter("pos")
+_desc = attrgetter("descriptor")
+_ref_kf = attrgetter("ref_kf")
 
 
-def write_handler(pipe, h: AgentHandler, new: bool = False) -> None:
+# S_m_l.to_array() by value (R, t and s as bytes): a handler's S_m_l changes only at a
+# merge or correction, and its quaternion (scipy) cost ~0.2 ms on every batch's store.
+_S_ARRAYS: dict[bytes, np.ndarray] = {}
+_S_ARRAYS_MAX = 1024
+
+
+def _sim3_array(S: Sim3) -> np.ndarray:
+    R, t = S.R, S.t
+    if R.dtype != np.float64 or t.dtype != np.float64 or R.shape != (3, 3) or t.shape != (3,):
+        return S.to_array()  # not what the bytes key assumes
+    key = R.tobytes() + t.tobytes() + np.float64(S.s).tobytes()
+    a = _S_ARRAYS.get(key)
+    if a is None:
+        a = S.to_array()
+        if len(_S_ARRAYS) >= _S_ARRAYS_MAX:
+            _S_ARRAYS.clear()
+        _S_ARRAYS[key] = a
+    return a
+
+
+def write_handler(pipe, h: AgentHandler, new: bool = False, map_agents: bool = True) -> None:
+    """``map_agents``: with the map's agent list (``write_handlers`` writes it once)."""
     if new:
         Store.new_agent(pipe, h.agent, h.map_id, time.time_ns())
     st = AgentState(h.map_id, h.S_m_l, h.lam, h.index, h.kf_high, h.camera.to_array())
-    Store.put_agent(pipe, h.agent, st)
-    Store.set_map_agents(pipe, h.map_id, h.smap.agents | {h.agent})
+    Store.put_agent(pipe, h.agent, st, _sim3_array(h.S_m_l))
+    if map_agents:
+        Store.set_map_agents(pipe, h.map_id, h.smap.agents | {h.agent})
+
+
+def write_handlers(pipe, handlers: list[AgentHandler]) -> None:
+    """``write_handler`` of each, in one MULTI/EXEC: a hash field written twice in it
+    ends as its last write, so each agent's state and each map's agent list is written
+    once, as the last of them would be (a batch group wrote its map's list 8 times)."""
+    last_of_map = {}
+    for h in {h.agent: h for h in handlers}.values():
+        write_handler(pipe, h, map_agents=False)
+    for h in handlers:
+        last_of_map[h.map_id] = h
+    for h in last_of_map.values():
+        Store.set_map_agents(pipe, h.map_id, h.smap.agents | {h.agent})
 
 
 def kf_state(kf: ServerKeyframe, map_id: str) -> StoredKeyframe:
@@ -35,8 +77,10 @@ def write_kf_state(pipe, kf: ServerKeyframe, map_id: str) -> None:
     Store.set_keyframe_state(pipe, kf_state(kf, map_id))
 
 
-def write_result(pipe, h: AgentHandler, res: IngestResult, names: dict[int, str]) -> None:
-    """Everything ``res`` changed, in the caller's MULTI/EXEC pipeline."""
+def write_result(pipe, h: AgentHandler, res: IngestResult, names: dict[int, str],
+                 handler: bool = True) -> None:  # fmt: skip
+    """Everything ``res`` changed, in the caller's MULTI/EXEC pipeline; ``handler``:
+    with the agent's state (else the caller writes it, see ``write_handlers``)."""
     smap = h.smap
     for g in res.new_kfs:
         kf = smap.kfs.get(g)
@@ -55,20 +99,29 @@ def write_result(pipe, h: AgentHandler, res: IngestResult, names: dict[int, str]
     write_points(pipe, smap, list(res.new_mps) + sorted(res.changed_mps), names)
     delete_points(pipe, res.removed_mps, names)
     Store.put_aliases(pipe, res.aliases)
-    write_handler(pipe, h)
+    if handler:
+        write_handler(pipe, h)
 
 
 def write_points(pipe, smap: ServerMap, gids, names: dict[int, str]) -> None:
-    by_agent: dict[int, list[int]] = {}
-    for g in gids:
-        if g in smap.mps:
-            by_agent.setdefault(agent_index_of(g), []).append(g)
-    for ai, gs in by_agent.items():
-        pts = [smap.mps[g] for g in gs]
+    # Grouped by agent with numpy and gathered by map(): a new keyframe brings ~100
+    # points, and a Python loop per point was most of this.
+    gids = list(gids)
+    pts = list(map(smap.mps.get, gids))
+    have = np.fromiter(map(is_not, pts, repeat(None)), bool, len(pts))
+    g = np.array(gids, np.int64).reshape(-1)
+    if not have.all():
+        pts, g = list(compress(pts, have.tolist())), g[have]
+    ai = agent_index_of(g)
+    agents = dict.fromkeys(ai.tolist())  # in order of first appearance
+    for a in agents:
+        sel = np.nonzero(ai == a)[0] if len(agents) > 1 else np.arange(len(g))
+        ps = list(map(pts.__getitem__, sel.tolist()))
         Store.put_points(
-            pipe, names[ai], [local_id_of(g) for g in gs],
-            np.array([p.pos for p in pts]), np.array([p.ref_kf for p in pts]),
-            np.array([p.descriptor for p in pts]),
+            pipe, names[a], local_id_of(g[sel]).tolist(),
+            stack_rows(list(map(_pos, ps)), np.float64, 3),
+            np.fromiter(map(_ref_kf, ps), np.int64, len(ps)),
+            stack_rows(list(map(_desc, ps)), np.uint8, 32),
         )  # fmt: skip
 
 

@@ -45,6 +45,8 @@ the orphan rule is placed from its predecessor once that arrives.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import compress, repeat
+from operator import attrgetter, is_not, not_, or_
 
 import numpy as np
 
@@ -61,6 +63,7 @@ from .pose_refine import refine_pose
 from .server_map import NO_MP, ServerKeyframe, ServerMap, ServerMapPoint
 
 EARLY_UPDATES_MAX = 4096  # keyframe updates kept waiting for their keyframe, per agent
+_ref_kf = attrgetter("ref_kf")
 
 
 @dataclass
@@ -338,11 +341,20 @@ class AgentHandler:
             kf.mp_ids = upd.mp_ids
 
     def _queue_mps(self, mps: MapPoints, res: IngestResult) -> None:
-        for j, i in enumerate(mps.ids.tolist()):
-            if gid(self.index, i) in self.smap.mps or gid(self.index, i) in self.aliases:
-                res.ack_mp_ids.append(i)
-            else:
-                self.pending_mps[i] = (int(mps.ref_kf[j]), mps.p_ref[j], mps.descriptors[j])
+        ids = mps.ids.tolist()
+        if not ids:
+            return
+        # Membership tests by map() over the batch's gids (~100 points per batch).
+        gs = gid(self.index, np.asarray(mps.ids, np.int64)).tolist()
+        known = list(map(self.smap.mps.__contains__, gs))
+        if self.aliases:
+            known = list(map(or_, known, map(self.aliases.__contains__, gs)))
+        res.ack_mp_ids.extend(compress(ids, known))
+        if all(known):
+            return
+        refs = mps.ref_kf.tolist()
+        for j in compress(range(len(ids)), map(not_, known)):
+            self.pending_mps[ids[j]] = (int(refs[j]), mps.p_ref[j], mps.descriptors[j])
 
     def _chain(self, pred_id, T_pred, par_id, T_par) -> np.ndarray | None:
         s = self.scale
@@ -418,18 +430,23 @@ class AgentHandler:
             for j in [j for j, m in enumerate(mp.tolist()) if m in al]:
                 mp[j] = self.mp_gid(int(kf.mp_ids[j]))
         # One dict lookup per keypoint gives both the mask and the points (the hot path
-        # of every keyframe: ~1000 keypoints).
+        # of every keyframe: ~1000 keypoints, so map() at C speed, no Python loop).
         pts = list(map(self.smap.mps.get, mp.tolist()))
-        known = np.fromiter((p is not None for p in pts), dtype=bool, count=len(pts)) & has
+        known = np.fromiter(map(is_not, pts, repeat(None)), bool, len(pts)) & has
         T = T_init
         lam0, r = self.lam, None
         use = known  # what the refinement sees (see the module's docstring)
         if self.params.refine_settled_only and known.any():
+            # Judged once per anchor keyframe (a few dozen), not once per point.
+            kj = np.nonzero(known)[0]
+            refs = list(map(_ref_kf, map(pts.__getitem__, kj.tolist())))
             kfs = self.smap.kfs
+            settled = {}
+            for g_ref in set(refs):
+                ref = kfs.get(g_ref)
+                settled[g_ref] = ref is not None and (ref.optimized or ref.agent != self.agent)
             use = known.copy()
-            for j in np.nonzero(known)[0].tolist():
-                ref = kfs.get(pts[j].ref_kf)
-                use[j] = ref is not None and (ref.optimized or ref.agent != self.agent)
+            use[kj] = np.fromiter(map(settled.__getitem__, refs), bool, len(refs))
         if self.params.refine_poses and use.sum() >= 20:
             P = np.concatenate([pts[j].pos for j in np.nonzero(use)[0].tolist()]).reshape(-1, 3)
             r = refine_pose(T_init, xy[use], P, cam.fx)
@@ -540,17 +557,18 @@ class AgentHandler:
         items = [self.pending_mps.pop(i) for i in ids]
         P = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
         pos = transform_points(T_ref, self.scale * P)
-        out = []
-        for k, i in enumerate(ids):
-            g = gid(self.index, i)
-            desc = np.asarray(items[k][2], np.uint8)
-            self.smap.add_map_point(ServerMapPoint(g, pos[k], desc, ref_g))
-            res.new_mps.append(g)
-            res.ack_mp_ids.append(i)
-            out.append(g)
-            for kf_g, j in self.waiting_obs.pop(g, ()):
-                if self.smap.add_observation(kf_g, j, g):
-                    res.changed_kfs.add(kf_g)
+        out = [gid(self.index, i) for i in ids]
+        descs = [np.asarray(it[2], np.uint8) for it in items]
+        # All in one go, then the observations waiting for them: an observation needs only
+        # its own point in the map, so the order is the one-by-one order's outcome.
+        self.smap.add_map_points(list(map(ServerMapPoint, out, pos, descs, repeat(ref_g))))
+        res.new_mps.extend(out)
+        res.ack_mp_ids.extend(ids)
+        if self.waiting_obs:
+            for g in out:
+                for kf_g, j in self.waiting_obs.pop(g, ()):
+                    if self.smap.add_observation(kf_g, j, g):
+                        res.changed_kfs.add(kf_g)
         return out
 
     def _associate(self, skf: ServerKeyframe, mp_ids: np.ndarray, res: IngestResult) -> None:

@@ -15,15 +15,42 @@ Graph definitions follow ORB-SLAM, as CCM-SLAM uses them (§4.2):
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
-from itertools import chain
+from itertools import chain, compress, repeat
+from operator import attrgetter, is_not
 
 import numpy as np
 
 COVIS_MIN = 15
 STRONG = 100
 NO_MP = -1
+
+_dtype = attrgetter("dtype")
+_obs = attrgetter("obs")
+
+
+def stack_rows(rows: list[np.ndarray], dtype: np.dtype, width: int) -> np.ndarray:
+    """``np.concatenate(rows).reshape(-1, width)`` of small arrays (points' positions or
+    descriptors), as ``dtype``.
+
+    Their bytes are joined and read back: numpy's per-array overhead in ``concatenate``
+    (~300 ns each) was most of what gathering a few thousand points cost (point fusion,
+    feedback chunks, keyframe events). Only when every row has ``dtype`` and is
+    contiguous; anything else goes through ``concatenate``, so the values are the same."""
+    dt = np.dtype(dtype)
+    if set(map(_dtype, rows)) <= {dt}:
+        try:
+            # bytearray, not bytes: the result is writable, as concatenate's is.
+            buf = bytearray().join(rows)
+        except (TypeError, BufferError, ValueError):
+            pass  # a non-contiguous row
+        else:
+            if len(buf) % (width * dt.itemsize) == 0:
+                return np.frombuffer(buf, dt).reshape(-1, width)
+    if not rows:
+        return np.zeros((0, width), dt)
+    return np.concatenate(rows).astype(dt, copy=False).reshape(-1, width)
 
 
 @dataclass
@@ -85,29 +112,33 @@ class ServerMap:
         g = kf.gid
         idx = np.nonzero(mp >= 0)[0]
         # A second keypoint on the same point is dropped (numpy, not a Python set: this
-        # runs over every keypoint of every keyframe).
-        _, first = np.unique(mp[idx], return_index=True)
-        if len(first) < len(idx):
+        # runs over every keypoint of every keyframe). A plain sort tells whether there
+        # is one at all (almost never), at a fraction of unique's return_index.
+        s = np.sort(mp[idx])
+        if len(s) > 1 and (s[1:] == s[:-1]).any():
+            _, first = np.unique(mp[idx], return_index=True)
             dup = np.ones(len(idx), dtype=bool)
             dup[first] = False
             mp[idx[dup]] = NO_MP
             idx = idx[~dup]
-        get = self.mps.get
-        pts = []
-        for j, p in zip(idx.tolist(), map(get, mp[idx].tolist()), strict=True):
-            if p is None:
-                mp[j] = NO_MP  # unknown point
-            else:
-                pts.append((j, p))
+        # Lookups, the unknown points' mask, the observer dicts and the writes into them
+        # go through map() at C speed: Python loops over the ~1000 keypoints were a
+        # third of an insertion.
+        pts = list(map(self.mps.get, mp[idx].tolist()))
+        known = np.fromiter(map(is_not, pts, repeat(None)), bool, len(pts))
+        if not known.all():
+            mp[idx[~known]] = NO_MP  # unknown points
+            idx = idx[known]
+            pts = list(compress(pts, known.tolist()))
+        obs = list(map(_obs, pts))
         # A new keyframe has no edges yet: count all co-observers at C speed, then
         # mirror the counts (this is the hot path of every keyframe insertion).
-        c = Counter(chain.from_iterable(p.obs for _, p in pts))
+        c = Counter(chain.from_iterable(obs))
         self.covis[g] = c
         covis = self.covis
         for o, n in c.items():
             covis[o][g] = n
-        for j, p in pts:
-            p.obs[g] = j
+        deque(map(dict.__setitem__, obs, repeat(g), idx.tolist()), maxlen=0)
         best = self.best_covisible(kf.gid, exclude_newer=False)
         if best is not None:
             kf.parent = best
@@ -162,19 +193,18 @@ class ServerMap:
         """Remove a keyframe with its observations; points left with no observation go
         too (their gids are returned). Children move to their best covisible keyframe."""
         kf = self.kfs[kf_gid]
-        seen = [int(g) for g in kf.observed()]
+        seen = kf.observed().tolist()
         # Every edge of this keyframe goes, so its observations are dropped without
         # the per-observer counter updates of _unobserve (which made a removal cost
         # points x observers); the edges are cut below in one pass over its row.
         idx = np.nonzero(kf.mp >= 0)[0]
-        for j, g in zip(idx.tolist(), kf.mp[idx].tolist(), strict=True):
-            p = self.mps.get(g)
+        get = self.mps.get
+        for j, p in zip(idx.tolist(), map(get, kf.mp[idx].tolist()), strict=True):
             if p is not None and p.obs.get(kf_gid) == j:
                 del p.obs[kf_gid]
         kf.mp[idx] = NO_MP
         dead = []
-        for g in seen:
-            p = self.mps.get(g)
+        for g, p in zip(seen, map(get, seen), strict=True):
             if p is None:
                 continue
             if not p.obs:
@@ -212,6 +242,19 @@ class ServerMap:
         for j in self._journals:
             j.append(p.gid)
         self.version += 1
+
+    def add_map_points(self, points: list[ServerMapPoint]) -> None:
+        """:meth:`add_map_point` of each, in order, in one dict update (a keyframe brings
+        ~100 new points)."""
+        gids = [p.gid for p in points]
+        if len(set(gids)) < len(gids) or not self.mps.keys().isdisjoint(gids):
+            for p in points:  # raises at the first one the map has, as one by one
+                self.add_map_point(p)
+            return
+        self.mps.update(zip(gids, points, strict=True))
+        for j in self._journals:
+            j.extend(gids)
+        self.version += len(points)
 
     def absorb_points(self, points: dict[int, ServerMapPoint]) -> None:
         """Take in another map's points (a merge)."""

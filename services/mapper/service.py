@@ -523,7 +523,8 @@ class MapperService:
             try:
                 pipe = self.own.pipeline(changed[0][0].map_id)
                 for h, res in changed:
-                    persist.write_result(pipe, h, res, self.names)
+                    persist.write_result(pipe, h, res, self.names, handler=False)
+                persist.write_handlers(pipe, [h for h, _ in changed])
                 pipe.execute()
             except Exception:
                 # Not acknowledged; written (as the map is then) with the agent's next
