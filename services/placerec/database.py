@@ -68,7 +68,6 @@ class KeyframeDatabase:
         # neither adding nor querying loops over words in Python (per-word
         # ``array.array`` lists cost a Python append per entry and a ``np.frombuffer``
         # per word and query: a third of place recognition's CPU at 8 agents).
-        self._b_word = np.zeros(0, np.int32)
         self._b_slot = np.zeros(0, np.int32)
         self._b_val = np.zeros(0, np.float64)
         self._b_start = np.zeros(self.n_words + 1, np.int64)
@@ -89,7 +88,7 @@ class KeyframeDatabase:
         self._live_entries = 0
         self._dead_entries = 0
 
-    _TAIL_MAX = 16384  # entries (~40 keyframes): a merge is O(database), a scan O(tail)
+    _TAIL_MAX = 32768  # entries (~80 keyframes): a merge is O(database), a scan O(tail)
 
     # -- bookkeeping -----------------------------------------------------------------
     def __len__(self) -> int:
@@ -171,17 +170,20 @@ class KeyframeDatabase:
             return
         order = np.argsort(self._t_word[:t], kind="stable")
         w = self._t_word[:t][order]
-        at = self._b_start[w + 1]  # the end of each word's base range
-        self._b_word = np.insert(self._b_word, at, w)
-        self._b_slot = np.insert(self._b_slot, at, self._t_slot[:t][order])
-        self._b_val = np.insert(self._b_val, at, self._t_val[:t][order])
+        # Tail entry i lands before the base entry that follows its word's range, i.e.
+        # at that entry's index plus the i tail entries placed before it.
+        to = self._b_start[w + 1] + np.arange(t)
+        from_base = np.ones(len(self._b_slot) + t, bool)
+        from_base[to] = False
+        for name, tail in (("_b_slot", self._t_slot), ("_b_val", self._t_val)):
+            base = getattr(self, name)
+            merged = np.empty(len(from_base), base.dtype)
+            merged[from_base] = base
+            merged[to] = tail[:t][order]
+            setattr(self, name, merged)
+        counts = np.bincount(w, minlength=self.n_words)
+        self._b_start[1:] += np.cumsum(counts)
         self._t_len = 0
-        self._index_base()
-
-    def _index_base(self) -> None:
-        counts = np.bincount(self._b_word, minlength=self.n_words)
-        self._b_start = np.zeros(self.n_words + 1, np.int64)
-        np.cumsum(counts, out=self._b_start[1:])
 
     def remove(self, gid: int) -> bool:
         slot = self._slot_of.pop(int(gid), None)
@@ -213,9 +215,10 @@ class KeyframeDatabase:
     def _compact(self) -> None:
         """Drop dead slots' entries (amortized by the doubling rule)."""
         keep = self._alive[self._b_slot]
-        self._b_word, self._b_slot = self._b_word[keep], self._b_slot[keep]
-        self._b_val = self._b_val[keep]
-        self._index_base()
+        word = np.repeat(np.arange(self.n_words), np.diff(self._b_start))
+        self._b_slot, self._b_val = self._b_slot[keep], self._b_val[keep]
+        self._b_start = np.zeros(self.n_words + 1, np.int64)
+        np.cumsum(np.bincount(word[keep], minlength=self.n_words), out=self._b_start[1:])
         t = self._t_len
         keep = self._alive[self._t_slot[:t]]
         k = int(keep.sum())
