@@ -257,7 +257,9 @@ def match_projected(
     if len(near) == 0:
         return e, e, e
     kk = min(k, len(cand))
-    dist, idx = cKDTree(kp).query(uv[near], k=kk, distance_upper_bound=rmax)
+    # Every keypoint allowed: the keyframe's own tree (the same points, the same tree).
+    tree = target.pixel_tree if len(cand) == len(target) else cKDTree(kp)
+    dist, idx = tree.query(uv[near], k=kk, distance_upper_bound=rmax)
     if kk == 1:
         dist, idx = dist[:, None], idx[:, None]
     valid = (idx < len(cand)) & (dist <= radius[near, None])
@@ -272,6 +274,34 @@ def match_projected(
     best_of = np.full(len(P), _BIG, np.int64)
     best_of[near] = best
     return pi, ki, best_of[pi]
+
+
+def count_projected(
+    P: np.ndarray,
+    desc: np.ndarray,
+    target: KeyframeData,
+    radius_px: float,
+    max_hamming: int,
+    scale_factor: float,
+    at_least: int,
+    chunk: int = 512,
+) -> int:
+    """``len(match_projected(P, desc, None, None, target, all keypoints, ...)[0])`` when
+    it is below ``at_least``, else some count >= ``at_least``.
+
+    A point's match does not depend on the other points and the count is the number of
+    distinct keypoints matched, which only grows with more points; so the points go
+    in chunks and the count stops once it reaches ``at_least`` (a confirmation needs
+    20 matches and usually has them in the first chunk of thousands of points)."""
+    allowed = np.ones(len(target), bool)
+    hit: set[int] = set()
+    for a in range(0, len(P), chunk):
+        _, ki, _ = match_projected(P[a : a + chunk], desc[a : a + chunk], None, None, target,
+                                   allowed, radius_px, max_hamming, scale_factor)  # fmt: skip
+        hit.update(ki.tolist())
+        if len(hit) >= at_least:
+            break
+    return len(hit)
 
 
 def _guided_kf_matches(
