@@ -289,26 +289,31 @@ class KeyframeDatabase:
 
     def min_neighbour_score(self, bow: BowVector, neighbours: Iterable[int]) -> float:
         """ORB-SLAM's minScore: the lowest score between the query and its covisible kfs."""
-        bows = [self._bows[s] for g in neighbours if (s := self._slot_of.get(int(g))) is not None]
+        slots = [self._slot_of.get(int(g)) for g in neighbours]
+        bows = [b for s in slots if s is not None and (b := self._bows[s]) is not None]
         if not bows:
             return 0.0
         # ``bow_score`` per neighbour without its ``np.intersect1d`` (a sort per pair,
-        # ~60 neighbours per query): the query's weights are looked up by word. The
-        # shared words come out in the same (ascending) order with the same values,
-        # so every score is the same float.
+        # ~60 neighbours per query): the query's weights are looked up by word, for all
+        # neighbours at once. The shared words come out in the same (ascending) order
+        # with the same values and each neighbour's terms are summed on their own (a
+        # slice, the same pairwise summation), so every score is the same float.
         words = bow.words
         self._in_query[words] = True
         self._q_weight[words] = bow.weights
         try:
-            scores = []
-            for b in bows:
-                assert b is not None
-                m = self._in_query[b.words]
-                va, vb = self._q_weight[b.words[m]], b.weights[m]
-                scores.append(float(0.5 * (np.abs(va) + np.abs(vb) - np.abs(va - vb)).sum()))
+            w = np.concatenate([b.words for b in bows])
+            m = self._in_query[w]
+            va = self._q_weight[w[m]]
+            vb = np.concatenate([b.weights for b in bows])[m]
         finally:
             self._in_query[words] = False
             self._q_weight[words] = 0.0
+        terms = np.abs(va) + np.abs(vb) - np.abs(va - vb)
+        # Each neighbour's shared terms end where its words end, in the running count.
+        shared_before = np.concatenate([[0], np.cumsum(m)])
+        ends = shared_before[np.cumsum([len(b) for b in bows])].tolist()
+        scores = [float(0.5 * terms[a:b].sum()) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
         return min(scores)
 
     def query(
