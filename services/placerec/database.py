@@ -63,11 +63,12 @@ class KeyframeDatabase:
         # Inverted file in two parts. The base holds every entry (slot, weight) sorted
         # by word, with ``_b_start[w]:_b_start[w + 1]`` the entries of word w; the
         # tail holds the newest keyframes' entries as they came (slot by slot), and is
-        # merged into the base once it grows past ``_TAIL_MAX`` entries. A query takes
-        # its words' base ranges in one vectorized gather and scans the short tail, so
-        # neither adding nor querying loops over words in Python (per-word
-        # ``array.array`` lists cost a Python append per entry and a ``np.frombuffer``
-        # per word and query: a third of place recognition's CPU at 8 agents).
+        # merged into the base once it grows past ``_TAIL_MAX`` entries or a quarter of
+        # the base. A query takes its words' base ranges in one vectorized gather and
+        # scans the short tail, so neither adding nor querying loops over words in
+        # Python (per-word ``array.array`` lists cost a Python append per entry and a
+        # ``np.frombuffer`` per word and query: a third of place recognition's CPU at
+        # 8 agents).
         self._b_slot = np.zeros(0, np.int32)
         self._b_val = np.zeros(0, np.float64)
         self._b_start = np.zeros(self.n_words + 1, np.int64)
@@ -88,7 +89,10 @@ class KeyframeDatabase:
         self._live_entries = 0
         self._dead_entries = 0
 
-    _TAIL_MAX = 32768  # entries (~80 keyframes): a merge is O(database), a scan O(tail)
+    # Entries (~80 keyframes), or a quarter of the base when larger: a merge is
+    # O(database) and a query's scan O(tail), so a tail growing with the base keeps
+    # the merges' total cost linear in the number of keyframes.
+    _TAIL_MAX = 32768
 
     # -- bookkeeping -----------------------------------------------------------------
     def __len__(self) -> int:
@@ -159,7 +163,7 @@ class KeyframeDatabase:
         self._t_val[t : t + n] = bow.weights
         self._t_len = t + n
         self._live_entries += n
-        if self._t_len > self._TAIL_MAX:
+        if self._t_len > max(self._TAIL_MAX, len(self._b_slot) // 4):
             self._merge_tail()
 
     def _merge_tail(self) -> None:
