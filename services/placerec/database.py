@@ -307,16 +307,15 @@ class KeyframeDatabase:
         self._q_weight[words] = bow.weights
         try:
             w = np.concatenate([b.words for b in bows])
-            m = self._in_query[w]
-            va = self._q_weight[w[m]]
-            vb = np.concatenate([b.weights for b in bows])[m]
+            shared = np.flatnonzero(self._in_query[w])
+            va = self._q_weight[w[shared]]
+            vb = np.concatenate([b.weights for b in bows])[shared]
         finally:
             self._in_query[words] = False
             self._q_weight[words] = 0.0
         terms = np.abs(va) + np.abs(vb) - np.abs(va - vb)
-        # Each neighbour's shared terms end where its words end, in the running count.
-        shared_before = np.concatenate([[0], np.cumsum(m)])
-        ends = shared_before[np.cumsum([len(b) for b in bows])].tolist()
+        # Each neighbour's shared terms end before the first shared word past its own.
+        ends = np.searchsorted(shared, np.cumsum([len(b) for b in bows])).tolist()
         scores = [float(0.5 * terms[a:b].sum()) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
         return min(scores)
 
