@@ -255,12 +255,16 @@ class KeyframeDatabase:
             # or all in the tail, each in word order, so every keyframe's sum below
             # adds its terms in the order the per-word lists did (the same floats).
             self._in_query[words] = True
-            hit = np.nonzero(self._in_query[self._t_word[:t]])[0]
+            self._q_weight[words] = weights
+            tw = self._t_word[:t]
+            hit = np.flatnonzero(self._in_query[tw])
+            q_hit = self._q_weight[tw[hit]]
             self._in_query[words] = False
+            self._q_weight[words] = 0.0
             if len(hit):
                 slots = np.concatenate([slots, self._t_slot[hit]])
                 vals = np.concatenate([vals, self._t_val[hit]])
-                q = np.concatenate([q, weights[np.searchsorted(words, self._t_word[hit])]])
+                q = np.concatenate([q, q_hit])
         if len(slots) == 0:
             e = np.zeros(0)
             return e.astype(np.int64), e, e.astype(np.int64)
