@@ -315,7 +315,7 @@ def count_projected(
     max_hamming: int,
     scale_factor: float,
     at_least: int,
-    chunk: int = 512,
+    chunk: int = 256,
 ) -> int:
     """``len(match_projected(P, desc, None, None, target, all keypoints, ...)[0])`` when
     it is below ``at_least``, else some count >= ``at_least``.
