@@ -55,7 +55,11 @@ class KeyframeData:
     @property
     def has_point(self) -> np.ndarray:
         """Keypoints with a usable 3D map point in front of the camera."""
-        return (self.mp >= 0) & np.isfinite(self.p_c).all(axis=1) & (self.p_c[:, 2] > 0)
+        p = self.p_c
+        # Column by column: numpy's .all(axis=1) over 3 values per row was 3x slower, and
+        # this runs for every keyframe of every candidate's neighbourhood.
+        finite = np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(p[:, 2])
+        return (self.mp >= 0) & finite & (p[:, 2] > 0)
 
     @property
     def pixel_tree(self) -> cKDTree:
