@@ -13,23 +13,22 @@ recognition vs. map matching). Scoring and candidate selection follow ORB-SLAM's
    that also passed step 1; the group is represented by its best keyframe;
 4. return the groups scoring above 0.75x the best group.
 
-Inverted lists are ``array.array`` buffers: appending is O(1) and numpy reads them
-without copying (``np.frombuffer``), so a query is a handful of concatenations and
-one ``np.bincount`` whatever the number of keyframes. Removal marks a slot dead;
-lists are compacted once dead entries outnumber live ones. Not thread-safe: one
-worker owns a database.
+The inverted file is flat numpy arrays (a word-sorted base and a short tail of the
+newest keyframes, see ``KeyframeDatabase.__init__``), so adding a keyframe is a few
+slice assignments and a query a vectorized gather and one ``np.bincount`` whatever the
+number of keyframes. Removal marks a slot dead; entries are compacted once dead ones
+outnumber live ones. Not thread-safe: one worker owns a database.
 """
 
 from __future__ import annotations
 
 import logging
-from array import array
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .vocabulary import BowVector, bow_score
+from .vocabulary import BowVector
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +60,24 @@ class QueryParams:
 class KeyframeDatabase:
     def __init__(self, n_words: int) -> None:
         self.n_words = int(n_words)
-        self._inv_slot = [array("i") for _ in range(self.n_words)]
-        self._inv_val = [array("d") for _ in range(self.n_words)]
+        # Inverted file in two parts. The base holds every entry (slot, weight) sorted
+        # by word, with ``_b_start[w]:_b_start[w + 1]`` the entries of word w; the
+        # tail holds the newest keyframes' entries as they came (slot by slot), and is
+        # merged into the base once it grows past ``_TAIL_MAX`` entries or a quarter of
+        # the base. A query takes its words' base ranges in one vectorized gather and
+        # scans the short tail, so neither adding nor querying loops over words in
+        # Python (per-word ``array.array`` lists cost a Python append per entry and a
+        # ``np.frombuffer`` per word and query: a third of place recognition's CPU at
+        # 8 agents).
+        self._b_slot = np.zeros(0, np.int32)
+        self._b_val = np.zeros(0, np.float64)
+        self._b_start = np.zeros(self.n_words + 1, np.int64)
+        self._t_word = np.zeros(0, np.int32)
+        self._t_slot = np.zeros(0, np.int32)
+        self._t_val = np.zeros(0, np.float64)
+        self._t_len = 0
+        self._in_query = np.zeros(self.n_words, bool)  # scratch: the query's words
+        self._q_weight = np.zeros(self.n_words)  # scratch: the query's weight per word
         self._slot_of: dict[int, int] = {}
         self._gid = np.zeros(0, np.int64)
         self._map = np.zeros(0, np.int32)
@@ -74,12 +89,22 @@ class KeyframeDatabase:
         self._live_entries = 0
         self._dead_entries = 0
 
+    # Entries (~80 keyframes), or a quarter of the base when larger: a merge is
+    # O(database) and a query's scan O(tail), so a tail growing with the base keeps
+    # the merges' total cost linear in the number of keyframes.
+    _TAIL_MAX = 32768
+
     # -- bookkeeping -----------------------------------------------------------------
     def __len__(self) -> int:
         return len(self._slot_of)
 
     def __contains__(self, gid: int) -> bool:
         return int(gid) in self._slot_of
+
+    @property
+    def n_entries(self) -> int:
+        """Inverted-file entries held, dead ones not yet compacted away included."""
+        return len(self._b_slot) + self._t_len
 
     def map_of(self, gid: int) -> str:
         return self._map_names[self._map[self._slot_of[int(gid)]]]
@@ -127,10 +152,42 @@ class KeyframeDatabase:
         self._bows.append(bow)
         self._slot_of[gid] = slot
         self._map_slots[mi].add(slot)
-        for w, v in zip(bow.words.tolist(), bow.weights.tolist(), strict=True):
-            self._inv_slot[w].append(slot)
-            self._inv_val[w].append(v)
-        self._live_entries += len(bow)
+        n, t = len(bow), self._t_len
+        if t + n > len(self._t_word):
+            cap = max(1024, 2 * (t + n))
+            self._t_word = np.resize(self._t_word, cap)
+            self._t_slot = np.resize(self._t_slot, cap)
+            self._t_val = np.resize(self._t_val, cap)
+        self._t_word[t : t + n] = bow.words
+        self._t_slot[t : t + n] = slot
+        self._t_val[t : t + n] = bow.weights
+        self._t_len = t + n
+        self._live_entries += n
+        if self._t_len > max(self._TAIL_MAX, len(self._b_slot) // 4):
+            self._merge_tail()
+
+    def _merge_tail(self) -> None:
+        """Move the tail into the base, after the base's entries of each word (so a
+        word's entries stay in insertion order)."""
+        t = self._t_len
+        if t == 0:
+            return
+        order = np.argsort(self._t_word[:t], kind="stable")
+        w = self._t_word[:t][order]
+        # Tail entry i lands before the base entry that follows its word's range, i.e.
+        # at that entry's index plus the i tail entries placed before it.
+        to = self._b_start[w + 1] + np.arange(t)
+        from_base = np.ones(len(self._b_slot) + t, bool)
+        from_base[to] = False
+        for name, tail in (("_b_slot", self._t_slot), ("_b_val", self._t_val)):
+            base = getattr(self, name)
+            merged = np.empty(len(from_base), base.dtype)
+            merged[from_base] = base
+            merged[to] = tail[:t][order]
+            setattr(self, name, merged)
+        counts = np.bincount(w, minlength=self.n_words)
+        self._b_start[1:] += np.cumsum(counts)
+        self._t_len = 0
 
     def remove(self, gid: int) -> bool:
         slot = self._slot_of.pop(int(gid), None)
@@ -160,19 +217,19 @@ class KeyframeDatabase:
         return len(slots)
 
     def _compact(self) -> None:
-        """Drop dead slots from every inverted list (amortized by the doubling rule)."""
-        alive = self._alive
-        for w in range(self.n_words):
-            s = self._inv_slot[w]
-            if not s:
-                continue
-            sa = np.frombuffer(s, np.int32)
-            keep = alive[sa]
-            if keep.all():
-                continue
-            self._inv_slot[w] = array("i", sa[keep].tobytes())
-            vals = np.frombuffer(self._inv_val[w], np.float64)[keep]
-            self._inv_val[w] = array("d", vals.tobytes())
+        """Drop dead slots' entries (amortized by the doubling rule)."""
+        keep = self._alive[self._b_slot]
+        word = np.repeat(np.arange(self.n_words), np.diff(self._b_start))
+        self._b_slot, self._b_val = self._b_slot[keep], self._b_val[keep]
+        self._b_start = np.zeros(self.n_words + 1, np.int64)
+        np.cumsum(np.bincount(word[keep], minlength=self.n_words), out=self._b_start[1:])
+        t = self._t_len
+        keep = self._alive[self._t_slot[:t]]
+        k = int(keep.sum())
+        self._t_word[:k] = self._t_word[:t][keep]
+        self._t_slot[:k] = self._t_slot[:t][keep]
+        self._t_val[:k] = self._t_val[:t][keep]
+        self._t_len = k
         self._dead_entries = 0
 
     # -- queries -----------------------------------------------------------------------
@@ -184,16 +241,33 @@ class KeyframeDatabase:
         exclude_maps: Iterable[str] = (),
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(gids, L1 scores, shared word counts) of every allowed keyframe sharing a word."""
-        words = bow.words.tolist()
-        lists = [self._inv_slot[w] for w in words]
-        lens = np.fromiter((len(x) for x in lists), np.int64, len(lists))
-        nz = np.nonzero(lens)[0].tolist()
-        if not nz:
+        words, weights = bow.words, bow.weights
+        # Base: each word's range, gathered at once.
+        start = self._b_start[words]
+        lens = self._b_start[words + 1] - start
+        total = int(lens.sum())
+        pos = np.repeat(start - (np.cumsum(lens) - lens), lens) + np.arange(total)
+        slots, vals = self._b_slot[pos], self._b_val[pos]
+        q = np.repeat(weights, lens)
+        t = self._t_len
+        if t:
+            # Tail: its entries of the query's words. A slot's entries are all in the base
+            # or all in the tail, each in word order, so every keyframe's sum below
+            # adds its terms in the order the per-word lists did (the same floats).
+            self._in_query[words] = True
+            self._q_weight[words] = weights
+            tw = self._t_word[:t]
+            hit = np.flatnonzero(self._in_query[tw])
+            q_hit = self._q_weight[tw[hit]]
+            self._in_query[words] = False
+            self._q_weight[words] = 0.0
+            if len(hit):
+                slots = np.concatenate([slots, self._t_slot[hit]])
+                vals = np.concatenate([vals, self._t_val[hit]])
+                q = np.concatenate([q, q_hit])
+        if len(slots) == 0:
             e = np.zeros(0)
             return e.astype(np.int64), e, e.astype(np.int64)
-        slots = np.concatenate([np.frombuffer(lists[i], np.int32) for i in nz])
-        vals = np.concatenate([np.frombuffer(self._inv_val[words[i]], np.float64) for i in nz])
-        q = np.repeat(bow.weights[nz], lens[nz])
         contrib = q + vals - np.abs(q - vals)
         n = len(self._bows)
         ok = self._allowed(n, exclude, maps, exclude_maps)
@@ -223,8 +297,31 @@ class KeyframeDatabase:
 
     def min_neighbour_score(self, bow: BowVector, neighbours: Iterable[int]) -> float:
         """ORB-SLAM's minScore: the lowest score between the query and its covisible kfs."""
-        scores = [bow_score(bow, self.bow_of(g)) for g in neighbours if int(g) in self._slot_of]
-        return min(scores) if scores else 0.0
+        slots = [self._slot_of.get(int(g)) for g in neighbours]
+        bows = [b for s in slots if s is not None and (b := self._bows[s]) is not None]
+        if not bows:
+            return 0.0
+        # ``bow_score`` per neighbour without its ``np.intersect1d`` (a sort per pair,
+        # ~60 neighbours per query): the query's weights are looked up by word, for all
+        # neighbours at once. The shared words come out in the same (ascending) order
+        # with the same values and each neighbour's terms are summed on their own (a
+        # slice, the same pairwise summation), so every score is the same float.
+        words = bow.words
+        self._in_query[words] = True
+        self._q_weight[words] = bow.weights
+        try:
+            w = np.concatenate([b.words for b in bows])
+            shared = np.flatnonzero(self._in_query[w])
+            va = self._q_weight[w[shared]]
+            vb = np.concatenate([b.weights for b in bows])[shared]
+        finally:
+            self._in_query[words] = False
+            self._q_weight[words] = 0.0
+        terms = np.abs(va) + np.abs(vb) - np.abs(va - vb)
+        # Each neighbour's shared terms end before the first shared word past its own.
+        ends = np.searchsorted(shared, np.cumsum([len(b) for b in bows])).tolist()
+        scores = [float(0.5 * terms[a:b].sum()) for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+        return min(scores)
 
     def query(
         self,

@@ -18,9 +18,10 @@ database and to geometric verification::
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .vocabulary import BowVector, FeatureVector, Vocabulary
 
@@ -38,6 +39,7 @@ class KeyframeData:
     fx: float  # focal length in pixels, turns normalized errors into pixel thresholds
     bow: BowVector | None = None
     fv: FeatureVector | None = None
+    _tree: cKDTree | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.descriptors)
@@ -53,7 +55,19 @@ class KeyframeData:
     @property
     def has_point(self) -> np.ndarray:
         """Keypoints with a usable 3D map point in front of the camera."""
-        return (self.mp >= 0) & np.isfinite(self.p_c).all(axis=1) & (self.p_c[:, 2] > 0)
+        p = self.p_c
+        # Column by column: numpy's .all(axis=1) over 3 values per row was 3x slower, and
+        # this runs for every keyframe of every candidate's neighbourhood.
+        finite = np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(p[:, 2])
+        return (self.mp >= 0) & finite & (p[:, 2] > 0)
+
+    @property
+    def pixel_tree(self) -> cKDTree:
+        """k-d tree over all keypoints in pixels (``xy * fx``), built once: a database
+        keyframe is searched by projection in every confirmation it neighbours."""
+        if self._tree is None:
+            self._tree = cKDTree(self.xy * self.fx)
+        return self._tree
 
     def compute_bow(self, voc: Vocabulary) -> KeyframeData:
         """Fill ``bow`` and ``fv`` from the descriptors (in place; returns self)."""

@@ -39,7 +39,7 @@ from shared.settings import PlacerecSettings, default_of
 
 from .database import ConsistencyChecker, KeyframeDatabase
 from .keyframe import KeyframeData, MapPoints
-from .verify import VerifyParams, match_projected, verify
+from .verify import VerifyParams, count_projected, verify
 from .vocabulary import Vocabulary, bow_score
 
 log = logging.getLogger(__name__)
@@ -360,12 +360,12 @@ class PlaceRecognizer:
                 continue
             T_n_r = se3_inv(kn.T_m_kf) @ kr.T_m_kf
             P_n = P_ref @ T_n_r[:3, :3].T + T_n_r[:3, 3]
-            pi, _, _ = match_projected(
-                P_n, descriptors, None, None, kn.data, np.ones(len(kn.data), bool),
-                v.neighbourhood_radius_px, v.neighbourhood_max_hamming, v.scale_factor,
+            n_matches = count_projected(
+                P_n, descriptors, kn.data, v.neighbourhood_radius_px,
+                v.neighbourhood_max_hamming, v.scale_factor, self.p.confirm_matches,
             )  # fmt: skip
             checked += 1
-            confirmed += len(pi) >= self.p.confirm_matches
+            confirmed += n_matches >= self.p.confirm_matches
             if enough is not None and confirmed >= enough:
                 break
         return checked, confirmed
