@@ -92,7 +92,8 @@ class LeaseStats:
 
     acquired: int = 0  # maps taken that had no live owner (new, or a dead owner's)
     renewals: int = 0
-    lost: int = 0  # leases found taken by another owner or expired at renewal
+    lost: int = 0  # leases found taken by another owner at renewal
+    retaken: int = 0  # leases found lapsed at renewal, nobody having taken the map since
     released: int = 0  # hand-overs: leases given up on purpose
     refused_writes: int = 0
 
@@ -149,6 +150,23 @@ class Leases:
                              args=[self._value(map_id, token), self.lease_ms])  # fmt: skip
             if ok:
                 self.stats.renewals += 1
+                continue
+            # Lapsed while this owner could not renew (its process starved of CPU, Redis
+            # busy with a long command). In a 48-agent load test the only mapper dropped
+            # the team's merged map this way, while it was building and writing 120-160
+            # MB optimization copies of it; nobody else wanted the map, nobody took it
+            # back within a minute, and 319 keyframes stayed unacknowledged. Nobody took
+            # it since -- the fencing counter is still at this owner's token -- so it is
+            # taken again, as a write would (``_current``); one another owner took is lost.
+            new = int(self._retake(keys=[k_lease(map_id), k_fence(map_id)],
+                                   args=[self.owner, self.lease_ms, token]))  # fmt: skip
+            if new:
+                with self._lock:
+                    if self.tokens.get(map_id) == token:
+                        self.tokens[map_id] = new
+                self.stats.retaken += 1
+                log.warning("lease of map %s lapsed unrenewed; nobody took it, taken again",
+                            map_id)  # fmt: skip
             else:
                 lost.append(map_id)
         if lost:

@@ -60,6 +60,12 @@ def _object_hook(d: dict) -> Any:
     return d
 
 
+# The largest binary field a decoder accepts (a bound on what a malformed or hostile
+# message can make it allocate). Senders of big messages check against it
+# (services/mapper/collab.py: an optimization request of a very large map).
+MAX_BIN_BYTES = 64 << 20
+
+
 def packb(obj: Any) -> bytes:
     return msgpack.packb(obj, default=_default, use_bin_type=True)
 
@@ -68,7 +74,7 @@ def unpackb(data: bytes) -> Any:
     try:
         return msgpack.unpackb(
             data, object_hook=_object_hook, raw=False, strict_map_key=False,
-            max_bin_len=64 << 20, max_str_len=1 << 20, max_array_len=1 << 20,
+            max_bin_len=MAX_BIN_BYTES, max_str_len=1 << 20, max_array_len=1 << 20,
             max_map_len=1 << 20,
         )  # fmt: skip
     except DecodeError:
@@ -917,7 +923,7 @@ def peek_session(data: bytes) -> int | None:
     there is none, and for anything malformed (the decode then says what is wrong)."""
     try:
         u = msgpack.Unpacker(
-            raw=False, strict_map_key=False, max_bin_len=64 << 20, max_str_len=1 << 20,
+            raw=False, strict_map_key=False, max_bin_len=MAX_BIN_BYTES, max_str_len=1 << 20,
             max_array_len=1 << 20, max_map_len=1 << 20,
         )  # fmt: skip
         u.feed(data)

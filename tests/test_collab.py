@@ -260,6 +260,32 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     assert digest(again.maps[map_id]) == digest(smap)
 
 
+def test_a_map_too_large_for_one_job_is_not_sent_and_not_copied_again(redis_url, world):
+    """A global copy over what one job can carry (the optimizer could not decode it) is
+    not written to the job stream; it is counted, and the map is not copied again at that
+    size (each copy held the map's lock for seconds at 48 agents)."""
+    from services.mapper.metrics import OPT_SKIPPED
+
+    settings = Settings(redis_url=redis_url)
+    svc = MapperService(settings)
+    gts, sims = _two_noisy_agents(svc, world)
+    assert svc.collab.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    svc.collab.max_job_bytes = 1000  # any copy of this map is larger
+    skipped = OPT_SKIPPED.labels("too_large")._value.get()
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    assert svc.collab.request(map_id, "merge") is None
+    assert OPT_SKIPPED.labels("too_large")._value.get() == skipped + 1
+    assert opt.queue.take(block_s=0.1) is None  # nothing went to the job stream
+    assert map_id not in svc.collab._inflight
+    # Asked again at the same size: refused before any copy is taken.
+    svc.collab.max_job_bytes = 1 << 40
+    assert svc.collab.request(map_id, "merge") is None
+    assert OPT_SKIPPED.labels("too_large")._value.get() == skipped + 2
+    assert opt.queue.take(block_s=0.1) is None
+
+
 def _settled_then_restarted(redis_url, world, forget_flags: bool = False):
     """The merged pair optimized once (settled), then a second mapper loaded from the
     same Redis; ``forget_flags``: the stored settled flags removed first, as in a store

@@ -17,7 +17,7 @@ import pytest
 from procs import wait_until
 
 from shared.leases import Fenced, Leases
-from shared.store import connect
+from shared.store import connect, k_lease
 
 LEASE_S = 1.0
 _wait = partial(wait_until, step=0.02)
@@ -74,6 +74,22 @@ def test_an_expired_lease_is_taken_and_a_write_in_flight_is_refused(redis_url):
     assert len(errors) == 1 and "taken during a write" in str(errors[0])
     assert r.get("hm:test:m") == b"b"
     assert a.renew() == ["m"] and a.held() == []
+    r.close()
+
+
+def test_a_lease_lapsed_unrenewed_that_nobody_took_is_taken_again_at_renewal(redis_url):
+    """An owner that could not renew in time (starved of CPU, Redis busy) keeps its map
+    when nobody took it meanwhile: a new token, writes go on; one another owner took is
+    lost as before (the tests above)."""
+    r = connect(redis_url)
+    a = Leases(r, "mapper-a", LEASE_S)
+    t = a.acquire("m")
+    assert _wait(lambda: r.exists(k_lease("m")) == 0, 3 * LEASE_S)  # lapsed
+    assert a.renew() == [] and a.held() == ["m"] and a.stats.retaken == 1
+    assert a.owner_of("m") == ("mapper-a", t + 1)  # a new fencing token
+    a.write("m", lambda p: p.set("hm:test:m", b"a"))
+    assert r.get("hm:test:m") == b"a"
+    assert Leases(r, "mapper-b", LEASE_S).acquire("m") is None  # held again
     r.close()
 
 

@@ -81,6 +81,7 @@ from shared.geometry import Sim3
 from shared.ids import agent_index_of, local_id_of
 from shared.jobs import JobQueue
 from shared.messages import (
+    MAX_BIN_BYTES,
     CorrectionMsg,
     DecodeError,
     KeyframeEvent,
@@ -113,6 +114,7 @@ from .metrics import (
     MERGES,
     OPT_PENDING,
     OPT_REQUESTS,
+    OPT_SKIPPED,
     QUEUE_DEPTH,
 )
 from .registry import MapRegistry
@@ -209,6 +211,11 @@ class Collaboration:
         # maps keep ``optimize_min_interval_s``. A windowed BA is spaced by its own cost,
         # not by the global runs'.
         self._spacings: dict[tuple[str, str], _Spacing] = {}
+        # Keyframes of a map whose global copy came out too large for one job (over
+        # MAX_BIN_BYTES: the optimizer cannot decode it): no global copy is taken again
+        # at that size, as each took seconds of capture under the map's lock.
+        self._too_large: dict[str, int] = {}
+        self.max_job_bytes = MAX_BIN_BYTES
         self.opt_share = opt_share
         self.optimizer_share = optimizer_share
         self.persist_chunk = 2000  # points per stored slice of a correction
@@ -610,6 +617,10 @@ class Collaboration:
         t0 = time.perf_counter()
         local = reason == "local"
         spacing = self._spacing(map_id, reason)
+        if not local and len(smap.kfs) >= self._too_large.get(map_id, 1 << 62):
+            spacing.sent = time.monotonic()  # not again at once
+            OPT_SKIPPED.labels("too_large").inc()
+            return None
         keep: set[int] = set()
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
@@ -636,7 +647,20 @@ class Collaboration:
             t1 = time.perf_counter()
             req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
+        data = req.encode()
+        t3 = time.perf_counter()
         sent = spacing.sent = time.monotonic()
+        if len(data) > self.max_job_bytes:
+            # In a 48-agent load test the merged map's global copies reached 120 and
+            # 160 MB: each was written to Redis whole, and the optimizer rejected both.
+            # Windowed BAs (far smaller) go on.
+            if not local:
+                self._too_large[map_id] = len(req.kf_gids)
+            OPT_SKIPPED.labels("too_large").inc()
+            log.warning("optimization of %s (%s) not requested: its copy of %d keyframes is "
+                        "%.0f MB, over the %.0f MB one job can carry", map_id, reason,
+                        len(req.kf_gids), len(data) / 1e6, self.max_job_bytes / 1e6)  # fmt: skip
+            return None
         with self._lock:
             self._inflight[map_id] = (sent, reason, int(req.version))
             for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
@@ -648,8 +672,6 @@ class Collaboration:
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
-        data = req.encode()
-        t3 = time.perf_counter()
         job = self.jobs.submit(map_id, data)
         t4 = time.perf_counter()
         if not local:

@@ -18,6 +18,11 @@ MERGES = Counter("hivemap_map_merges_total", "Server maps fused into another")
 OPT_REQUESTS = Counter(
     "hivemap_optimize_requests_total", "Map copies sent to the optimizer", ["reason"]
 )
+# A map too large for one optimization job (its copy over shared.messages.MAX_BIN_BYTES,
+# which the optimizer cannot decode): not sent; windowed BAs go on.
+OPT_SKIPPED = Counter(
+    "hivemap_optimize_skipped_total", "Optimization requests not sent", ["reason"]
+)
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
 # Maps marked for an optimization whose request has not gone out yet: debounced, or held
 # back by the spacing of a big map's requests (collab.Collaboration.due), which at 1000
@@ -27,6 +32,10 @@ OPT_PENDING = Gauge("hivemap_optimize_pending", "Maps marked for an optimization
 # instance's own counts (they are kept in its Ownership and Leases objects).
 MAPS_OWNED = Gauge("hivemap_mapper_maps_owned", "Maps whose lease this mapper holds")
 LEASE_RENEWALS = Gauge("hivemap_mapper_lease_renewals", "Map lease renewals since start")
+LEASES_LOST = Gauge("hivemap_mapper_leases_lost", "Map leases found taken by another mapper")
+LEASES_RETAKEN = Gauge(
+    "hivemap_mapper_leases_retaken", "Map leases found lapsed unrenewed and taken again"
+)
 TAKEOVERS = Gauge(
     "hivemap_mapper_takeovers", "Maps taken over from a mapper that stopped renewing them"
 )

@@ -70,6 +70,8 @@ from .metrics import (
     FENCED_WRITES,
     HANDOVERS,
     LEASE_RENEWALS,
+    LEASES_LOST,
+    LEASES_RETAKEN,
     MAP_POINTS,
     MAPS_OWNED,
     OVERLOAD_LEVEL,
@@ -874,6 +876,8 @@ class MapperService:
         self.own.heartbeat(len(self.registry.handlers()), len(self.registry.maps))
         for g, v in ((MAPS_OWNED, len(self.own.leases.held())),
                      (LEASE_RENEWALS, self.own.leases.stats.renewals),
+                     (LEASES_LOST, self.own.leases.stats.lost),
+                     (LEASES_RETAKEN, self.own.leases.stats.retaken),
                      (TAKEOVERS, self.own.takeovers), (HANDOVERS, self.own.handovers),
                      (FENCED_WRITES, self.own.leases.stats.refused_writes)):  # fmt: skip
             g.set(v)
