@@ -32,6 +32,13 @@ from .vocabulary import BowVector
 
 log = logging.getLogger(__name__)
 
+
+def ranges(starts: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """Concatenated ``arange(s, s + n)`` for each (s, n): the entries of several ranges
+    gathered at once (the inverted file's words, a feature vector's nodes)."""
+    return np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+
+
 Covisibility = Callable[[int], Sequence[int]] | Mapping[int, Sequence[int]]
 
 
@@ -245,8 +252,7 @@ class KeyframeDatabase:
         # Base: each word's range, gathered at once.
         start = self._b_start[words]
         lens = self._b_start[words + 1] - start
-        total = int(lens.sum())
-        pos = np.repeat(start - (np.cumsum(lens) - lens), lens) + np.arange(total)
+        pos = ranges(start, lens)
         slots, vals = self._b_slot[pos], self._b_val[pos]
         q = np.repeat(weights, lens)
         t = self._t_len

@@ -43,6 +43,7 @@ from shared.geometry import Sim3, umeyama
 from shared.orb import SCALE_FACTOR
 from shared.settings import PlacerecSettings, default_of
 
+from .database import ranges
 from .keyframe import KeyframeData, MapPoints
 from .vocabulary import as_u64, hamming_u64
 
@@ -114,7 +115,7 @@ def match_by_bow(q: KeyframeData, c: KeyframeData, p: VerifyParams) -> tuple[np.
     a, b, nq, nc = a[both], b[both], nq[both], nc[both]
     if len(a) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    rows = kq[_ranges(q_off[a], nq)]  # q keypoint of each row
+    rows = kq[ranges(q_off[a], nq)]  # q keypoint of each row
     row_nc = np.repeat(nc, nq)  # its node's number of c keypoints
     row_c0 = np.repeat(c_off[b], nq)  # where they start in kc
     start = np.cumsum(row_nc) - row_nc  # each row's first pair
@@ -143,11 +144,6 @@ def _with_points(k: KeyframeData) -> tuple[np.ndarray, np.ndarray]:
     keep = k.has_point[fv.order]
     kept_before = np.r_[0, np.cumsum(keep)]
     return fv.order[keep], kept_before[fv.offsets]
-
-
-def _ranges(starts: np.ndarray, lens: np.ndarray) -> np.ndarray:
-    """Concatenated ``arange(s, s + n)`` for each (s, n)."""
-    return np.repeat(starts - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
 
 
 def _one_per_target(src: np.ndarray, tgt: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, ...]:
