@@ -34,6 +34,8 @@ def test_agent_without_server_tracks_and_bounds_its_map():
     assert r.percent_of_path < 0.5, r
     # Bounded local map: N + B keyframes at most, the rest trimmed.
     assert len(agent.vo.kfs) <= 15 and stats.kf_trimmed > 0
+    # Every keyframe counted, the two of initialization too.
+    assert stats.keyframes == agent.vo.next_kf == len(agent.kf_poses)
 
 
 def test_late_server_receives_everything_the_buffer_held(redis_url, caplog):
@@ -88,6 +90,7 @@ def test_late_server_receives_everything_the_buffer_held(redis_url, caplog):
     assert not agent.comm.forgotten and stats.kf_lost_unacked == 0
     assert stored == created
     assert stored == set(agent.comm.acked_kfs)
+    assert stats.acked_keyframes == stats.keyframes == len(created)
     assert not agent.comm.pending
     assert len(stored) >= 8
     # Feedback from the server (the k keyframes most covisible with KF_ref) reached the

@@ -64,7 +64,10 @@ class Step:
     kf_ref: int = -1  # newest keyframe (the reference of the live pose), -1 none
     T_l_ref: np.ndarray | None = None
     T_pred: np.ndarray | None = None  # the motion model's pose for this frame
-    keyframe: bool = False
+    # Keyframes this frame made: two on the frame that initializes the VO (its first
+    # keyframe is made with the second), else 0 or 1. Counted as a bool, stats said one
+    # keyframe fewer than the agent sent and the server acknowledged.
+    keyframes: int = 0
     track_s: float = 0.0
     map_s: float = 0.0  # mapping time run inline on this frame (0 when off the path)
 
@@ -308,8 +311,8 @@ class AgentLoop:
                 st.longest_lost_s = max(st.longest_lost_s, (s.stamp_ns - lost_since) * 1e-9)
             else:
                 lost_since = None
-            if s.keyframe:
-                st.keyframes += 1
+            if s.keyframes:
+                st.keyframes += s.keyframes
                 if s.map_s > 0:
                     st.map_s.append(s.map_s)
             if s.kf_ref >= 0:

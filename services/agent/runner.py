@@ -69,6 +69,7 @@ class VOProducer:
         if live:
             self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
+        self._kf_high = -1  # the newest keyframe id in kf_poses
         self._sent_kfs: set[int] = set()
         self._newest_sent = -1
         self._kp_sel: dict[int, np.ndarray] = {}  # keyframe -> the keypoints sent
@@ -91,8 +92,12 @@ class VOProducer:
         s = Step(r.stamp_ns, r.T_w_c, r.state, T_pred=r.T_pred, track_s=r.track_s,
                  map_s=r.map_s)  # fmt: skip
         if r.keyframe is not None:
-            self.kf_poses.append((r.keyframe.stamp_ns, r.keyframe.T_w_c.copy()))
-            s.keyframe = True
+            # Every keyframe made since the last one seen: initialization makes two.
+            made = [self.vo.kfs[k] for k in sorted(self.vo.kfs) if k > self._kf_high]
+            for k in made:
+                self.kf_poses.append((k.stamp_ns, k.T_w_c.copy()))
+            self._kf_high = max(self.vo.kfs)
+            s.keyframes = len(made)
             self._on_keyframe(r)
         self._after_ba()
         # KF_ref: the newest keyframe the server can have (the newer ones wait to

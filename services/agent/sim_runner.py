@@ -41,7 +41,7 @@ class SimProducer:
         if kf is not None:
             self.comm.add_keyframe(kf.kf)
             self.comm.add_map_points(kf.new_mps)
-            s.keyframe = True
+            s.keyframes = 1
             self.stats.map_points += len(kf.new_mps)
         if self.sim.last_kf is not None:
             s.kf_ref, s.T_l_ref = self.sim.last_kf[0], self.sim.last_kf[1]
