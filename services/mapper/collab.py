@@ -674,7 +674,7 @@ class Collaboration:
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
-        job = self.jobs.submit(map_id, data)
+        job = self.jobs.submit(map_id, data, pause=lambda: reg.wait_for_batches(0.1))
         t4 = time.perf_counter()
         if not local:
             with self._lock:
