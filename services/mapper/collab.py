@@ -50,7 +50,9 @@ global optimizations and not one window, agent1's newest settled keyframe laggin
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
 - a map copy for the optimizer is *captured* under the lock (poses and index arrays
-  copied, ~30 ms at 2000 keyframes) and *built* outside it;
+  copied, ~30 ms at 2000 keyframes) and *built* outside it, covisibility copied and
+  the message packed and sent to Redis in slices (at 24 agents each of those, done
+  whole, held up the map's batches for 0.4-0.9 s: ``request``);
 - a correction is applied in memory under the lock in one step (a half-corrected map
   would register new keyframes against stale points) and stored in slices;
 - a loop's matched points are fused a few pairs per hold, and at most
@@ -95,7 +97,7 @@ from shared.store import Store
 from shared.transport import Bus
 
 from . import persist
-from .capture import build_request, capture_map, capture_window
+from .capture import build_request, capture_map, capture_window, copy_covisibility
 from .correction import apply_correction, plan_correction
 from .feedback import settled_scale
 from .merge import (
@@ -638,13 +640,15 @@ class Collaboration:
                 else:
                     loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                              if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
-                    cap = capture_map(smap, loops)
+                    cap = capture_map(smap, loops, covis=False)
             if cap is None:
                 if local:
                     spacing.sent = time.monotonic()  # not again at once
                 return None
             keep.difference_update(cap.gids)
             t1 = time.perf_counter()
+            if not local:
+                cap.covis = copy_covisibility(smap, cap.gids, pause=reg.wait_for_batches)
             req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
         # In slices, sleeping while batches wait: msgpack's packb of a 24-agent map's
