@@ -130,7 +130,7 @@ def test_a_large_copy_goes_through_redis_in_slices_and_is_deleted_with_its_job(r
         q = JobQueue(r, consumer="w")
         q.data_slice = 1000
         q.ensure_group()
-        data = bytes(range(256)) * 20 + b"end"  # 5 slices
+        data = bytes(range(256)) * 16 + b"end"  # 4099 bytes: 5 slices
         pauses = []
         jid = q.submit("map-A", bytearray(data), pause=lambda: pauses.append(1))
         small = q.submit("map-B", b"small")
