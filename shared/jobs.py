@@ -19,6 +19,13 @@ bookkeeping, the hand-out to exactly one consumer is atomic, and jobs outlive bo
 sides. The cost is that a map copy (megabytes) passes through Redis once; an entry is
 deleted when it is acknowledged.
 
+A copy larger than ``DATA_SLICE_BYTES`` does not go into the stream entry: it is
+pushed to a list of its own a slice at a time and read back the same way, the entry
+naming the list. Redis serves one command at a time, and a 24-agent map's copy (tens of
+MB) in one XADD kept it from every other client for about half a second: the map
+actors' stores waited behind it with their map's lock held (494-855 ms holds, the
+actor waiting for Redis's answer while the mapper sent the copy).
+
 A job can still *run* twice: a worker that published its correction and was killed
 before acknowledging, or one paused past ``claim_idle_s`` that resumes. So the result
 carries the job id and the mapper applies a job's correction once
@@ -47,6 +54,11 @@ K_JOBS, K_LATEST, K_RESTARTS = store.K_OPT_JOBS, store.K_OPT_LATEST, store.K_OPT
 K_TAKEN, K_WORKERS = store.K_OPT_TAKEN, store.K_OPT_WORKERS
 GROUP = "optimizers"
 APPLIED_TTL_S = 86400
+# Copies larger than this are written and read in slices of this size (see above), and
+# kept at most DATA_TTL_S should their job never be done (the stream entry deleted
+# unread, a worker gone): a job that old has long been superseded.
+DATA_SLICE_BYTES = 4 << 20
+DATA_TTL_S = 900
 
 
 _KEEP = """
@@ -79,6 +91,7 @@ class Job:
     data: bytes
     deliveries: int  # 1 for a fresh job, more for one claimed from a dead worker
     claimed: bool
+    data_key: str | None = None  # where a large copy was (deleted with the job)
 
 
 class JobQueue:
@@ -94,13 +107,29 @@ class JobQueue:
         self.claim_idle_ms = max(int(claim_idle_s * 1000), 1)
         self.max_deliveries = max_deliveries
         self.dropped = 0
+        self.data_slice = DATA_SLICE_BYTES
         self._keep = r.register_script(_KEEP)
 
     # --- mapper side -------------------------------------------------------------------
-    def submit(self, map_id: str, data: bytes) -> str:
+    def submit(self, map_id: str, data: bytes | bytearray, pause=None) -> str:
         """Adds a job; returns its id. It becomes the map's newest job, so a worker
-        holding an older copy of the map may abandon it."""
-        job = _s(self.r.xadd(K_JOBS, {"map": map_id, "data": data}))
+        holding an older copy of the map may abandon it. A copy over
+        ``DATA_SLICE_BYTES`` is written a slice at a time, ``pause`` called between
+        slices (see the module's docstring)."""
+        if len(data) <= self.data_slice:
+            fields = {"map": map_id, "data": data}
+        else:
+            key = store.k_opt_data(uuid.uuid4().hex)
+            view = memoryview(data)
+            for i in range(0, len(view), self.data_slice):
+                if i and pause is not None:
+                    pause()
+                p = self.r.pipeline(transaction=False)
+                p.rpush(key, view[i : i + self.data_slice])
+                p.expire(key, DATA_TTL_S)
+                p.execute()
+            fields = {"map": map_id, "data_key": key, "data_len": len(data)}
+        job = _s(self.r.xadd(K_JOBS, fields))
         # Two mappers never submit for one map (one owner), so this is not a race:
         # it only has to follow the XADD.
         self.r.hset(K_LATEST, map_id, job)
@@ -158,10 +187,20 @@ class JobQueue:
 
     def _job(self, eid, fields: dict, deliveries: int, claimed: bool) -> Job:
         f = {_s(k): v for k, v in fields.items()}
-        job = Job(id=_s(eid), map_id=_s(f.get("map", b"")), data=bytes(f.get("data", b"")),
-                  deliveries=deliveries, claimed=claimed)  # fmt: skip
+        key = _s(f["data_key"]) if "data_key" in f else None
+        data = bytes(f.get("data", b"")) if key is None else self._read(key)
+        if key is not None and len(data) != int(f.get("data_len", -1)):
+            data = b""  # gone (expired) or cut short: rejected as undecodable
+        job = Job(id=_s(eid), map_id=_s(f.get("map", b"")), data=data,
+                  deliveries=deliveries, claimed=claimed, data_key=key)  # fmt: skip
         self.r.hincrby(K_TAKEN, self.consumer, 1)
         return job
+
+    def _read(self, key: str) -> bytes:
+        """A copy written in slices, read a slice at a time (empty when it is gone:
+        the job then fails to decode and is rejected)."""
+        n = self.r.llen(key)
+        return b"".join(self.r.lindex(key, i) or b"" for i in range(n))
 
     def keep(self, job: Job) -> bool:
         """Marks ``job`` as alive under this worker; False when it is no longer pending
@@ -188,6 +227,8 @@ class JobQueue:
         p = self.r.pipeline(transaction=True)
         p.xack(K_JOBS, GROUP, job.id)
         p.xdel(K_JOBS, job.id)
+        if job.data_key is not None:
+            p.delete(job.data_key)
         if finished:
             p.hdel(K_RESTARTS, job.map_id)
         return bool(p.execute()[0])

@@ -175,6 +175,11 @@ def k_opt_applied(job: str) -> str:
     return _k("opt", "applied", job)
 
 
+def k_opt_data(token: str) -> str:
+    """A large job's map copy, written in slices (``JobQueue.submit``)."""
+    return _k("opt", "data", token)
+
+
 def _f8(b: bytes | None, shape: tuple[int, ...]) -> np.ndarray | None:
     if b is None:
         return None

@@ -248,11 +248,16 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     corr = CorrectionMsg.decode(corr.encode())
     # A keyframe that arrived during the optimization is carried along (CCM-SLAM Fig. 4).
     _fly_on(svc, sims, gts, "A", "MH01", 700, 760)
+    svc.collab.drop_slice = 5  # the BA's outlier observations dropped over several holds
     assert svc.collab.on_correction(corr) is True
     # The same job's correction again (a second worker ran it): applied once.
     assert svc.collab.on_correction(corr) is False
     smap = svc.maps[map_id]
     assert smap.check_invariants() == []
+    kept = [(kg, mg) for kg, mg in zip(corr.outlier_kf.tolist(), corr.outlier_mp.tolist(),
+                                       strict=True)
+            if mg in smap.mps and kg in smap.mps[mg].obs and len(smap.mps[mg].obs) > 2]  # fmt: skip
+    assert kept == []  # each dropped, but where it was one of its point's last two
     after = _joint_rigid_error(svc, gts, "AB")
     assert after <= before * 1.05, (before, after)
     again = MapperService(settings)

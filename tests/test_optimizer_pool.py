@@ -119,3 +119,32 @@ def test_a_killed_worker_leaves_its_job_to_another_and_it_is_applied_once(settin
     taken = q.taken()
     print("jobs taken per worker:", taken)
     assert sum(taken.values()) == 4  # two jobs, each taken twice
+
+
+def test_a_large_copy_goes_through_redis_in_slices_and_is_deleted_with_its_job(redis_url):
+    """A copy over the slice size is pushed to a key of its own a slice at a time (one
+    XADD of tens of MB kept Redis from every other client for about half a second); a
+    worker reads it back whole, and the key goes when the job is done."""
+    r = connect(redis_url)
+    try:
+        q = JobQueue(r, consumer="w")
+        q.data_slice = 1000
+        q.ensure_group()
+        data = bytes(range(256)) * 16 + b"end"  # 4099 bytes: 5 slices
+        pauses = []
+        jid = q.submit("map-A", bytearray(data), pause=lambda: pauses.append(1))
+        small = q.submit("map-B", b"small")
+        assert len(pauses) == 4
+        job = q.take(block_s=0.1)
+        assert (job.id, job.map_id, job.data) == (jid, "map-A", data)
+        assert job.data_key is not None and r.exists(job.data_key)
+        q.done(job, finished=True)
+        assert not r.exists(job.data_key)
+        job = q.take(block_s=0.1)
+        assert (job.id, job.data, job.data_key) == (small, b"small", None)
+        # A copy gone before it was read (expired) decodes as nothing: rejected.
+        jid = q.submit("map-A", data)
+        r.delete(*r.keys("*opt:data*"))
+        assert q.take(block_s=0.1).data == b""
+    finally:
+        r.close()

@@ -50,7 +50,9 @@ global optimizations and not one window, agent1's newest settled keyframe laggin
 Every agent of a merged map registers through that map's one actor, so nothing here
 may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per batch):
 - a map copy for the optimizer is *captured* under the lock (poses and index arrays
-  copied, ~30 ms at 2000 keyframes) and *built* outside it;
+  copied, ~30 ms at 2000 keyframes) and *built* outside it, covisibility copied and
+  the message packed and sent to Redis in slices (at 24 agents each of those, done
+  whole, held up the map's batches for 0.4-0.9 s: ``request``);
 - a correction is applied in memory under the lock in one step (a half-corrected map
   would register new keyframes against stale points) and stored in slices;
 - a loop's matched points are fused a few pairs per hold, and at most
@@ -95,7 +97,7 @@ from shared.store import Store
 from shared.transport import Bus
 
 from . import persist
-from .capture import build_request, capture_map, capture_window
+from .capture import build_request, capture_map, capture_window, copy_covisibility
 from .correction import apply_correction, plan_correction
 from .feedback import settled_scale
 from .merge import (
@@ -221,6 +223,7 @@ class Collaboration:
         self.persist_chunk = 2000  # points per stored slice of a correction
         self.loop_fuse_max = 100  # matched point pairs fused per loop
         self.fuse_slice = 10  # pairs fused per hold of the map's lock
+        self.drop_slice = 1000  # outlier observations dropped per hold (_drop_outliers)
         # Poses each optimization request was made from, by (map, version): a correction
         # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
@@ -638,16 +641,20 @@ class Collaboration:
                 else:
                     loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                              if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
-                    cap = capture_map(smap, loops)
+                    cap = capture_map(smap, loops, covis=False)
             if cap is None:
                 if local:
                     spacing.sent = time.monotonic()  # not again at once
                 return None
             keep.difference_update(cap.gids)
             t1 = time.perf_counter()
+            if not local:
+                cap.covis = copy_covisibility(smap, cap.gids, pause=reg.wait_for_batches)
             req = build_request(cap, reason, pause=reg.wait_for_batches)
         t2 = time.perf_counter()
-        data = req.encode()
+        # In slices, sleeping while batches wait: msgpack's packb of a 24-agent map's
+        # copy held the GIL for over 200 ms in one call (messages.packb_sliced).
+        data = req.encode_sliced(pause=lambda: reg.wait_for_batches(0.1))
         t3 = time.perf_counter()
         sent = spacing.sent = time.monotonic()
         if len(data) > self.max_job_bytes:
@@ -672,7 +679,7 @@ class Collaboration:
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
-        job = self.jobs.submit(map_id, data)
+        job = self.jobs.submit(map_id, data, pause=lambda: reg.wait_for_batches(0.1))
         t4 = time.perf_counter()
         if not local:
             with self._lock:
@@ -718,10 +725,12 @@ class Collaboration:
             # merged map held its lock for 0.3-0.6 s at 24 agents when done under it),
             # then applied in one hold: an assignment per point, plus the points that
             # came in meanwhile (the map's journal).
-            reg.wait_for_batches()
-            with reg.lock(c.map_id):
-                points = dict(smap.mps)
-                journal = smap.record_new_points()
+            # The copy needs no lock either: the journal is started first, so a point
+            # added while the copy is made is in the journal, the copy, or both (applied
+            # once), and ``dict()`` of int keys is one C call no other thread interleaves
+            # with. Under the lock it took ~40 ms at 24 agents (330k points).
+            journal = smap.record_new_points()
+            points = dict(smap.mps)
             try:
                 # Between slices it sleeps while batches wait, at most 0.1 s a slice (a
                 # second in all for 200k points): the corrected map is not held back long.
@@ -738,10 +747,6 @@ class Collaboration:
                     res = apply_correction(smap, c, snap_poses, plan, keep=keep if local else None)
                     smap.stop_recording(journal)
                     changed_kfs = res.kfs | res.kfs_propagated
-                    for kg, mg in zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(),
-                                      strict=True):  # fmt: skip
-                        if smap.drop_observation(kg, mg):
-                            changed_kfs.add(kg)
                     self._rescale_handlers(smap, c)
                     self._note_settled(c.map_id, c.kf_gids)
                     pipe = self.pipeline(c.map_id)
@@ -750,6 +755,7 @@ class Collaboration:
                     pipe.execute()
             finally:
                 smap.stop_recording(journal)
+            self._drop_outliers(c, smap, changed_kfs)
             self._persist_in_chunks(c.map_id, sorted(changed_kfs), sorted(res.mps))
         with self._lock:
             # Only the newest request's correction ends it: an older one's (a run the
@@ -774,6 +780,26 @@ class Collaboration:
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
                  c.stats)  # fmt: skip
         return True
+
+    def _drop_outliers(self, c: CorrectionMsg, smap, changed_kfs: set[int]) -> None:
+        """The observations the optimizer found to be outliers, dropped a slice at a time
+        after the correction is applied (the keyframes whose observations changed are
+        added to ``changed_kfs``). Each drop is a graph edit that leaves the map
+        consistent (like a fusion), and none moves a pose or a point, so a batch between
+        slices registers against a whole correction. In the correction's hold, a global
+        run's drops (each a pass over the point's observers' covisibility counters) all
+        ran while every batch of the map waited. Stops when the map was merged away
+        meanwhile (the merge stored the moved map whole)."""
+        reg = self.reg
+        drops = list(zip(c.outlier_kf.tolist(), c.outlier_mp.tolist(), strict=True))
+        for i in range(0, len(drops), self.drop_slice):
+            reg.wait_for_batches()
+            with reg.lock(c.map_id):
+                if reg.get(c.map_id) is not smap:
+                    return
+                for kg, mg in drops[i : i + self.drop_slice]:
+                    if smap.drop_observation(kg, mg):
+                        changed_kfs.add(kg)
 
     def _persist_in_chunks(self, map_id: str, kfs: list[int], mps: list[int]) -> None:
         """Store corrected keyframes and points a slice at a time, each slice under the
