@@ -69,6 +69,11 @@ SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
 # settle adds about settle_window_kfs (8) of an agent's keyframes, fewer than a fit
 # spans; a broken stretch longer than two fits would be compared with itself.
 MAX_SCALE_STEP = 0.0125
+# ... between stretches whose centres spread this much (RMS, units as ANCHOR_SPREAD);
+# narrower ones are allowed proportionally more, up to MAX_SCALE_STEP_NARROW (the bound
+# before). The steps of the settles gone wrong above came at spreads of 0.24-0.33.
+SCALE_STEP_SPREAD = 0.2
+MAX_SCALE_STEP_NARROW = 0.04
 _pos = attrgetter("pos")
 _desc = attrgetter("descriptor")
 
@@ -130,9 +135,24 @@ def fit_settled(
     before = _settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
     if before is not None:
         S0 = fit_sim3_poses(T_l[before], T_m[before])
-        if S0 is not None and abs(S.s / S0.s - 1.0) > max_step:
+        if S0 is not None and abs(S.s / S0.s - 1.0) > _step_bound(T_l, span, before, max_step):
             return None
     return S
+
+
+def _step_bound(T_l: np.ndarray, span: np.ndarray, before: np.ndarray, max_step: float) -> float:
+    """The scale step allowed between two settled stretches: ``max_step`` where both
+    spread SCALE_STEP_SPREAD or more, more for narrower ones (in proportion, up to
+    MAX_SCALE_STEP_NARROW): a fit's scale is a lever on its centres' spread. An agent
+    hovering for 25 keyframes (tests/test_collab.py, the settle test) fitted stretches
+    1.5 % apart at a spread of ~0.06, with no scale change at all."""
+
+    def rms(ix: np.ndarray) -> float:
+        c = T_l[ix, :3, 3]
+        return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean()))
+
+    narrow = max(min(rms(span), rms(before)), 1e-9)
+    return min(MAX_SCALE_STEP_NARROW, max(max_step, max_step * SCALE_STEP_SPREAD / narrow))
 
 
 def _settled_span(T_l: np.ndarray, idx: np.ndarray, n: int, spread: float) -> np.ndarray | None:
