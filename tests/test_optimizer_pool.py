@@ -56,6 +56,10 @@ def stack(settings, tmp_path):
     """A map of one simulated agent stored in Redis, a mapper serving it, two workers."""
     _feed(MapperService(settings), "A", sim_agent(LandmarkWorld(0), "MH01", slice(600), seed=3))
     mapper = MapperService(settings)
+    # One job per request: a BA stopped by its time budget (on a loaded machine) would
+    # ask for a continuation, a newer copy of the map, and a worker resumed from a pause
+    # then drops its stale run instead of finishing it, which is what the tests watch.
+    mapper.collab.max_continues = 0
     mapper.start()  # rebuilds the map from Redis, takes corrections over Zenoh
     workers = [_worker(settings, tmp_path, f"opt{i}") for i in range(2)]
     r = connect(settings.redis_url)
