@@ -191,7 +191,7 @@ def _capture(smap: ServerMap, gids: list[int], points: dict,
         T=np.array([k.T_m_kf for k in kfs], np.float64).reshape(-1, 4, 4),
         kf_mp=[k.mp.copy() for k in kfs], kf_xy=[k.xy for k in kfs],
         kf_oct=[k.octaves for k in kfs], parents=[k.parent for k in kfs],
-        covis=[dict(smap.covis.get(g, {})) for g in gids] if covis else [],
+        covis=copy_covisibility(smap, gids) if covis else [],
         loop_edges=[set(k.loop_edges) for k in kfs], points=points,
         loops=loops, fixed=fixed,
     )  # fmt: skip
