@@ -302,10 +302,15 @@ def test_a_correction_well_above_the_scatter_of_its_estimates_is_applied():
     est = np.array([r[1] for r in rows[2:]])
     sent = np.array([r[2] for r in rows[2:]])
     # The fit over 20 keyframes (the default) leaves 21 % of this fast drift at the newest
-    # keyframe, over 10 it left 14 % (sent: 33 and 25 %): a longer fit follows a drifting
-    # VO less closely, the price of averaging the map's own errors out (settings.py).
+    # keyframe, over 10 it left 14 %: a longer fit follows a drifting VO less closely,
+    # the price of averaging the map's own errors out (settings.py).
     assert vo.mean() > 0.03 and est.mean() < 0.25 * vo.mean(), (vo.mean(), est.mean())
-    assert sent.mean() < 0.35 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
+    # Sent, 61 % is left: the move of the agent is shortened by three standard deviations
+    # of the estimates' scatter (33 % with one, 47 % with two; correction_history.py
+    # SHRINK_SD says why three). This map redraws its errors at every optimization, so
+    # its estimates scatter more than a real map's, whose optimizations start from the
+    # last: on six recorded runs three cost the drifting agents 4-12 % of their ATE.
+    assert sent.mean() < 0.65 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
 
 
 def _replay_module():
