@@ -305,12 +305,12 @@ def test_a_correction_well_above_the_scatter_of_its_estimates_is_applied():
     # keyframe, over 10 it left 14 %: a longer fit follows a drifting VO less closely,
     # the price of averaging the map's own errors out (settings.py).
     assert vo.mean() > 0.03 and est.mean() < 0.25 * vo.mean(), (vo.mean(), est.mean())
-    # Sent, 61 % is left: the move of the agent is shortened by three standard deviations
-    # of the estimates' scatter (33 % with one, 47 % with two; correction_history.py
-    # SHRINK_SD says why three). This map redraws its errors at every optimization, so
-    # its estimates scatter more than a real map's, whose optimizations start from the
-    # last: on six recorded runs three cost the drifting agents 4-12 % of their ATE.
-    assert sent.mean() < 0.65 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
+    # Sent, 47 % is left: the move of the agent is shortened by two standard deviations
+    # of the estimates' scatter (33 % with one, 61 % with three; correction_history.py
+    # SHRINK_SD says why two). This map redraws its errors at every optimization, so its
+    # estimates scatter more than a real map's, whose optimizations start from the last:
+    # on seven recorded runs two cost the drifting agents up to 8 % of their ATE.
+    assert sent.mean() < 0.55 * vo.mean(), (vo.mean(), est.mean(), sent.mean())
 
 
 def _replay_module():
