@@ -38,8 +38,8 @@ PARTS = (slice(0, 3), slice(3, 6), slice(6, 7))  # where p goes, rotation, log s
 # by two, its rotation and scale by one. Replayed on seven runs recorded at 429a3d6 and
 # 19f2463 (seed-1 pair x3, seed-2 pair, team3, team5 x2; bench/replay_feedback.py, the
 # same map states): with one, the seed-1 pair's agent1 (a VO at 7.45 mm, about as good as
-# the map around it) was reported at 7.15 / 7.47 / 7.88 mm; with two at 6.96 / 7.21 /
-# 7.51, every other agent far below its VO, the teams' sums 9.8-41 % below (-11 to -43 %
+# the map around it) was reported at 7.15 / 7.47 / 7.88 mm; with two at 7.07 / 7.25 /
+# 7.57, every other agent far below its VO, the teams' sums 9.8-41 % below (-11 to -43 %
 # with one); with three 7.20 / 7.11 / 7.36, but the drifting agents kept less of their gain
 # (team5 -20 % against -26 % with two and -30 % with one, on the same map), the seed-1
 # pairs' sums 8.2-22 % below, and live at three a team5 run left agent4 at 44.57 mm
