@@ -69,7 +69,7 @@ class VOProducer:
         if live:
             self.vo.ba_worker = BAWorker()
         self.kf_poses: list[tuple[int, np.ndarray]] = []  # each keyframe as first sent
-        self._kf_high = -1  # the newest keyframe id in kf_poses
+        self._kf_seen = 0  # VO keyframe ids below this are in kf_poses (ids count up)
         self._sent_kfs: set[int] = set()
         self._newest_sent = -1
         self._kp_sel: dict[int, np.ndarray] = {}  # keyframe -> the keypoints sent
@@ -93,10 +93,11 @@ class VOProducer:
                  map_s=r.map_s)  # fmt: skip
         if r.keyframe is not None:
             # Every keyframe made since the last one seen: initialization makes two.
-            made = [self.vo.kfs[k] for k in sorted(self.vo.kfs) if k > self._kf_high]
+            kfs = self.vo.kfs
+            made = [kfs[k] for k in range(self._kf_seen, self.vo.next_kf) if k in kfs]
             for k in made:
                 self.kf_poses.append((k.stamp_ns, k.T_w_c.copy()))
-            self._kf_high = max(self.vo.kfs)
+            self._kf_seen = self.vo.next_kf
             s.keyframes = len(made)
             self._on_keyframe(r)
         self._after_ba()

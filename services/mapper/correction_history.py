@@ -43,9 +43,9 @@ PARTS = (slice(0, 3), slice(3, 6), slice(6, 7))  # where p goes, rotation, log s
 # with one); with three 7.20 / 7.11 / 7.36, but the drifting agents kept less of their gain
 # (team5 -20 % against -26 % with two and -30 % with one, on the same map), the seed-1
 # pairs' sums 8.2-22 % below, and live at three a team5 run left agent4 at 44.57 mm
-# against its VO's 44.06 and the team 6 % below. Four and five were no
-# better for agent1; the rotation and scale parts at two or three changed no agent's side
-# of its VO; a scatter from the recent 5 or 8 changes or the median change did worse.
+# against its VO's 44.06 and the team 6 % below. Four and five were no better for
+# agent1; the rotation and scale parts at two or three changed no agent's side of its VO;
+# a scatter from the recent 5 or 8 changes or the median change did worse.
 SHRINK_SD = (2.0, 1.0, 1.0)
 
 

@@ -62,10 +62,10 @@ SCALE_FIT_MAX = 400  # newest keyframes of the agent looked at
 # and the correction carried that scale over every keyframe flown until the next settle
 # (team5 agent5: 0.16-0.24 m off for 11 s until the next optimization put the scale
 # back, ATE 81 mm against its VO's 37; agent1 of the second team5 run: 15.0 against
-# 13.7). At 4 % (before) those passed; at
-# 1.25 % the same recorded map states give agent1 9.7 mm and agent5 57 (replayed
-# exactly), no agent's reported pose worse than before, and the steady 2.7 % per 120
-# keyframes scale drift of tests/test_frame_correction.py still corrected. A windowed
+# 13.7). At 4 % (before) those passed; at 1.25 % the same recorded map states give
+# agent1 9.7 mm and agent5 57 (replayed exactly), no agent's reported pose worse than
+# before, and the steady 2.7 % per 120 keyframes scale drift of
+# tests/test_frame_correction.py still corrected. A windowed
 # settle adds about settle_window_kfs (8) of an agent's keyframes, fewer than a fit
 # spans; a broken stretch longer than two fits would be compared with itself.
 MAX_SCALE_STEP = 0.0125
