@@ -59,6 +59,18 @@ def hist_quantile(metrics: dict[str, float], name: str, labels: str, q: float) -
     return b[-1][0]
 
 
+def pooled_quantile(metrics: dict[str, float], name: str, q: float) -> float:
+    """Quantile of histogram ``name`` summed over all its label sets (every agent's
+    keyframes together: the step figure issue 18's latency bar is set on)."""
+    acc: dict[str, float] = {}
+    for k, v in metrics.items():
+        if k.startswith(f"{name}_bucket{{"):
+            le = k.split('le="')[1].split('"')[0]
+            acc[le] = acc.get(le, 0.0) + v
+    pooled = {f'{name}_bucket{{all="1",le="{le}"}}': v for le, v in acc.items()}
+    return hist_quantile(pooled, name, 'all="1"', q)
+
+
 @contextlib.contextmanager
 def _plan_without(names: tuple[str, ...]):
     """Start the stack without the named services (item 2 measures the mapper; place

@@ -41,7 +41,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
+from bench_mapper import AGENT_NICE, pooled_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
 from common import ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
@@ -53,17 +53,6 @@ from shared.trajectory import SEQUENCES  # noqa: E402
 
 SERVER = ("mapper", "placerec", "optimizer")
 LAT = "hivemap_keyframe_latency_seconds"
-
-
-def _pooled_quantile(metrics: dict[str, float], q: float) -> float:
-    """Quantile of the mapper's latency histogram summed over its agents."""
-    acc: dict[str, float] = {}
-    for k, v in metrics.items():
-        if k.startswith(f"{LAT}_bucket{{"):
-            le = k.split('le="')[1].split('"')[0]
-            acc[le] = acc.get(le, 0.0) + v
-    pooled = {f'{LAT}_bucket{{all="1",le="{le}"}}': v for le, v in acc.items()}
-    return hist_quantile(pooled, LAT, 'all="1"', q)
 
 
 def _mean_ms(metrics: dict[str, float], name: str, labels: str) -> float:
@@ -209,8 +198,8 @@ def run_step(
         "kf_per_s_per_agent": kf_rate,
         "all_acked": sum(bool(s["all_acked"]) for s in stats),
         "kf_lost": sum(s.get("kf_lost_unacked", 0) for s in stats),
-        "mapper_p95_ms": 1e3 * _pooled_quantile(metrics, 0.95),
-        "mapper_median_ms": 1e3 * _pooled_quantile(metrics, 0.5),
+        "mapper_p95_ms": 1e3 * pooled_quantile(metrics, LAT, 0.95),
+        "mapper_median_ms": 1e3 * pooled_quantile(metrics, LAT, 0.5),
         "p95_ms": float(np.nanpercentile(lats, 95) * 1e3),
         "rt_median_ms": float(np.nanmedian(lats) * 1e3),
         "kB_per_s_per_agent": float(np.mean([s["bytes_per_s"] for s in stats]) / 1e3),

@@ -4,7 +4,8 @@ headless Chromium (playwright, executable_path; no browser download).
 
 Measured: frames per second the page draws (counted in the page, 5 s windows), what it
 shows (agents, points), the mapper's keyframe latency per agent while it runs (its
-histogram, received -> stored + acked; the bar is p95 <= 200 ms),
+histogram, received -> stored + acked; the bar is p95 <= 200 ms over all keyframes, as
+bench_ramp's steps; the worst agent's p95 is reported beside it),
 the mapper's traffic over time; every agent's server trajectory against ground truth.
 Writes bench/results/NAME.json, NAME.png (screenshot) and the plots beside them.
 
@@ -26,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, hist_quantile  # noqa: E402
+from bench_mapper import AGENT_NICE, hist_quantile, pooled_quantile  # noqa: E402
 from common import RESULTS, scrape, table, write_report  # noqa: E402
 from live_stack import chromium_missing, stack_settings, viewer_page  # noqa: E402
 from plots import (  # noqa: E402
@@ -42,6 +43,7 @@ from shared.progress import progress  # noqa: E402
 from shared.trajectory import SEQUENCES  # noqa: E402
 
 LATENCY_BAR_MS = 200.0
+LAT = "hivemap_keyframe_latency_seconds"
 
 
 def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
@@ -101,12 +103,13 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
     )
     rows = [{"agent": i,
              "keyframes": m.get(f'hivemap_keyframe_latency_seconds_count{{agent="{i}"}}', 0),
-             "mapper_median_ms": 1e3 * hist_quantile(m, "hivemap_keyframe_latency_seconds",
+             "mapper_median_ms": 1e3 * hist_quantile(m, LAT,
                                                       f'agent="{i}"', 0.5),
-             "mapper_p95_ms": 1e3 * hist_quantile(m, "hivemap_keyframe_latency_seconds",
+             "mapper_p95_ms": 1e3 * hist_quantile(m, LAT,
                                                    f'agent="{i}"', 0.95)}
             for i in ids]  # fmt: skip
     p95 = [r["mapper_p95_ms"] for r in rows if np.isfinite(r["mapper_p95_ms"])]
+    all_p95 = 1e3 * pooled_quantile(m, LAT, 0.95)
     steady = [f["fps"] for f in fps[1:]] or [f["fps"] for f in fps]
     draw = [f["draw_ms"] for f in fps[1:]] or [f["draw_ms"] for f in fps]
     return {
@@ -116,8 +119,14 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
                        "cap": 30, "draw_ms_median": float(np.median(draw)) if draw else None,
                        "draw_ms_max": float(max(draw)) if draw else None, "series": fps},
         "mapper_latency": rows,
+        # The bar (issue 18 item 1, which issue 21 item 4 says must still hold) is on the
+        # p95 over every keyframe of the step, as bench_ramp reports it; the worst
+        # single agent's p95 (the quantile of ~80-200 keyframes) is kept beside it.
+        "mapper_p95_ms": all_p95,
+        "mapper_median_ms": 1e3 * pooled_quantile(m, LAT, 0.5),
         "mapper_p95_max_ms": max(p95) if p95 else None,
-        "latency_pass": bool(p95) and max(p95) <= LATENCY_BAR_MS,
+        "latency_pass": bool(np.isfinite(all_p95)) and all_p95 <= LATENCY_BAR_MS,
+        "latency_pass_every_agent": bool(p95) and max(p95) <= LATENCY_BAR_MS,
         "api_ws_connections": a.get("hivemap_api_ws_connections_total", 0.0),
         "loadavg_1m_before_after": [load_before[0], load_after[0]],
         # How far behind real time the simulated agents fell (the load offered is below
@@ -161,8 +170,10 @@ def main() -> int:
     verdict = "pass" if r["latency_pass"] else "FAIL"
     print(f"viewer fps median {r['viewer_fps']['median']}, min {r['viewer_fps']['min']} "
           f"(cap 30), draw {r['viewer_fps']['draw_ms_median']} ms per frame; "
-          f"mapper p95 max {r['mapper_p95_max_ms']:.1f} ms (bar {LATENCY_BAR_MS:.0f} ms: "
-          f"{verdict}); load {r['loadavg_1m_before_after']}; agents behind real time by "
+          f"mapper p95 {r['mapper_p95_ms']:.1f} ms over all keyframes (bar "
+          f"{LATENCY_BAR_MS:.0f} ms: {verdict}), worst agent's p95 "
+          f"{r['mapper_p95_max_ms']:.1f} ms; load {r['loadavg_1m_before_after']}; "
+          f"agents behind real time by "
           f"{r['agents_behind_s_max']} s, {r['agents_kf_per_s']} keyframes/s each")  # fmt: skip
     print(f"written {path}")
     print("plot", traffic_over_time(r["traffic"], path.with_name(f"{name}_traffic.png"),
