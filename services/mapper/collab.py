@@ -685,8 +685,20 @@ class Collaboration:
             with self._lock:
                 spacing.copy_s = t4 - t0
         OPT_REQUESTS.labels(reason).inc()
-        feedback_dump.record("mapper", "request", map_id=map_id, reason=reason,
-                             version=int(req.version), kfs=len(req.kf_gids))  # fmt: skip
+        if feedback_dump.enabled():
+            # A window's make-up (which keyframes it frees, which it holds fixed, by gid:
+            # agent and keyframe id) tells a settle that ties an agent to other agents'
+            # keyframes from one that re-optimizes its own chain alone (team5 agent4 at
+            # 73a586d: two windows settled its keyframes in MH04's dark stretch 0.8 % off
+            # in scale, and the frame correction followed them).
+            fixed = set(cap.fixed)
+            feedback_dump.record(
+                "mapper", "request", map_id=map_id, reason=reason, version=int(req.version),
+                kfs=len(req.kf_gids),
+                free=np.array([g for g in cap.gids if g not in fixed], np.int64),
+                fixed=np.array(sorted(fixed), np.int64),
+                names=dict(reg.names),  # agent index (shared.ids.agent_index_of) -> agent
+            )  # fmt: skip
         log.info("optimization requested for %s (%s, job %s): %d keyframes, %d loops, "
                  "%.1f MB; capture %.0f ms (locked), build %.0f ms, encode %.0f ms, put %.0f ms",
                  map_id, reason, job, len(req.kf_gids), len(req.loops), len(data) / 1e6,
