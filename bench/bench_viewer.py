@@ -98,15 +98,11 @@ def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:
     finally:
         stack.stop()
     stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]
-    ids = sorted(
-        {k.split('"')[1] for k in m if k.startswith("hivemap_keyframe_latency_seconds_count{")}
-    )
+    ids = sorted({k.split('"')[1] for k in m if k.startswith(f"{LAT}_count{{")})
     rows = [{"agent": i,
-             "keyframes": m.get(f'hivemap_keyframe_latency_seconds_count{{agent="{i}"}}', 0),
-             "mapper_median_ms": 1e3 * hist_quantile(m, LAT,
-                                                      f'agent="{i}"', 0.5),
-             "mapper_p95_ms": 1e3 * hist_quantile(m, LAT,
-                                                   f'agent="{i}"', 0.95)}
+             "keyframes": m.get(f'{LAT}_count{{agent="{i}"}}', 0),
+             "mapper_median_ms": 1e3 * hist_quantile(m, LAT, f'agent="{i}"', 0.5),
+             "mapper_p95_ms": 1e3 * hist_quantile(m, LAT, f'agent="{i}"', 0.95)}
             for i in ids]  # fmt: skip
     p95 = [r["mapper_p95_ms"] for r in rows if np.isfinite(r["mapper_p95_ms"])]
     all_p95 = 1e3 * pooled_quantile(m, LAT, 0.95)
