@@ -6,6 +6,7 @@ fraction of the whole."""
 from __future__ import annotations
 
 import copy
+import gc
 import time
 
 import numpy as np
@@ -128,12 +129,20 @@ def test_applying_a_plan_takes_a_fraction_of_the_whole():
     whole = copy.deepcopy(m)
 
     def cpu(fn) -> float:
-        t = time.process_time()
-        fn()
-        return time.process_time() - t
+        # Without the collector, as timeit measures: in a loaded suite the 10 ms apply
+        # once took 33.8 ms against 54.5 for the whole (alone 10-13 against 43-53), and
+        # a collection of the young generations can land inside it (60k new arrays).
+        gc.collect()
+        gc.disable()
+        try:
+            t = time.process_time()
+            fn()
+            return time.process_time() - t
+        finally:
+            gc.enable()
 
-    copies = [copy.deepcopy(whole) for _ in range(2)]
+    copies = [copy.deepcopy(whole) for _ in range(3)]
     t_whole = min(cpu(lambda c=c: apply_correction(c, corr)) for c in copies)
-    plans = [plan_correction(m, corr, None, dict(m.mps), []) for _ in range(2)]
+    plans = [plan_correction(m, corr, None, dict(m.mps), []) for _ in range(3)]
     t_apply = min(cpu(lambda p=p: apply_correction(m, corr, None, p)) for p in plans)
     assert t_apply < 0.6 * t_whole, (t_apply, t_whole)
