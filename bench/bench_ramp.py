@@ -41,7 +41,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, pooled_quantile  # noqa: E402
+from bench_mapper import AGENT_NICE, LAT, pooled_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
 from common import ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
@@ -52,7 +52,6 @@ from shared.store import Store, connect  # noqa: E402
 from shared.trajectory import SEQUENCES  # noqa: E402
 
 SERVER = ("mapper", "placerec", "optimizer")
-LAT = "hivemap_keyframe_latency_seconds"
 
 
 def _mean_ms(metrics: dict[str, float], name: str, labels: str) -> float:

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, hist_quantile, pooled_quantile  # noqa: E402
+from bench_mapper import AGENT_NICE, LAT, hist_quantile, pooled_quantile  # noqa: E402
 from common import RESULTS, scrape, table, write_report  # noqa: E402
 from live_stack import chromium_missing, stack_settings, viewer_page  # noqa: E402
 from plots import (  # noqa: E402
@@ -43,7 +43,6 @@ from shared.progress import progress  # noqa: E402
 from shared.trajectory import SEQUENCES  # noqa: E402
 
 LATENCY_BAR_MS = 200.0
-LAT = "hivemap_keyframe_latency_seconds"
 
 
 def run(n_agents: int, seconds: float, name: str, with_viewer: bool) -> dict:

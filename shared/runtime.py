@@ -23,6 +23,13 @@ class Service(Protocol):
 log = logging.getLogger(__name__)
 
 
+def set_autogroup_nice(nice: int, pid: int | str = "self") -> None:
+    """Set the nice of the autogroup (scheduling group of a session) that ``pid`` leads;
+    raises OSError where there is none (ENOENT) or it may not be changed."""
+    with open(f"/proc/{pid}/autogroup", "w") as f:
+        f.write(str(nice))
+
+
 def set_priority(niceness: int) -> str | None:
     """Raise this process's niceness by ``niceness``; returns why it could not, or None.
 
@@ -41,8 +48,7 @@ def set_priority(niceness: int) -> str | None:
     if os.getsid(0) != os.getpid():
         return None  # the session is shared (a shell's): its group is not ours to change
     try:
-        with open("/proc/self/autogroup", "w") as f:
-            f.write(str(new))
+        set_autogroup_nice(new)
     except OSError as e:
         # No autogroup (kernel without it, or containers where the file is read-only):
         # plain nice is then what the scheduler uses.

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 
 from services.launcher import Scale, Stack
 from shared.redis_server import free_port
+from shared.runtime import set_autogroup_nice
 from shared.settings import Settings
 
 # Two agents flying the same stretch of MH01 (the drone moves from frame ~800 on):
@@ -193,10 +194,7 @@ def _hold_nice(root: int, nice: int, stop: threading.Event) -> None:
             # inside a session at 0 still took 0.5-0.7 of a core from the mapper.
             with contextlib.suppress(OSError):
                 if os.getsid(pid) == pid:
-                    with open(f"/proc/{pid}/autogroup", "r+") as f:
-                        if f.read().split()[-1] != str(nice):
-                            f.seek(0)
-                            f.write(str(nice))
+                    set_autogroup_nice(nice, pid)
 
 
 def viewer_fps(page, seconds: float = 5.0) -> float:
