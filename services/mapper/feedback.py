@@ -494,4 +494,26 @@ def _dump(h: AgentHandler, now_ns: int, S_g_l: np.ndarray | None) -> None:
         T_m=np.stack([k.T_m_kf for k in kfs]) if kfs else None,
         optimized=np.array([k.optimized for k in kfs], bool), S_g_l=S_g_l,
         stamps=np.array([k.stamp_ns for k in kfs], np.int64), version=smap.version,
+        ties=np.array([_ties(smap, k) for k in kfs], np.int64).reshape(-1, 3),
     )  # fmt: skip
+
+
+def _ties(smap, kf) -> tuple[int, int, int]:
+    """Covisibility weights (points shared, summed over keyframes) of a keyframe with
+    other agents' keyframes, with the agent's own more than TIE_GAP ids away, and in
+    all: what ties it to more than its VO chain, for the replay (a settle of keyframes
+    tied by neither only re-optimizes the chain)."""
+    cross = far = 0
+    c = smap.covis.get(kf.gid, {})
+    for o, n in c.items():
+        ok = smap.kfs.get(o)
+        if ok is None:
+            continue
+        if ok.agent != kf.agent:
+            cross += n
+        elif abs(ok.id - kf.id) > TIE_GAP:
+            far += n
+    return cross, far, sum(c.values())
+
+
+TIE_GAP = 20
