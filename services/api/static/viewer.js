@@ -205,7 +205,13 @@ function scene() {
   }
   const B = basis(mapId);
   const out = { mapId, B, trajs: {}, poses: [], loops: [], merges: [], pts: null };
-  for (const a in trajs) out.trajs[a] = trajs[a].map((p) => toLocal(B, p));
+  // Keyframe trajectories change with a state message (every 1.5 s), not per frame.
+  const tc = S.trajCache;
+  if (tc && tc.src === S.trajs && tc.B === B && tc.mapId === mapId) out.trajs = tc.out;
+  else {
+    for (const a in trajs) out.trajs[a] = trajs[a].map((p) => toLocal(B, p));
+    S.trajCache = { src: S.trajs, B, mapId, out: out.trajs };
+  }
   for (const a in S.agents) {
     const g = S.agents[a];
     if (g.map_id !== mapId || !g.position) continue;
@@ -227,7 +233,10 @@ function scene() {
       // Colour between the 5th and 95th height percentiles: a few outliers do not wash it out.
       const zs = Array.from({ length: Math.min(n, 2000) }, (_, k) => L[3 * Math.floor(k * n / Math.min(n, 2000)) + 2]).sort((a, b) => a - b);
       P.zlo = zs.length ? zs[Math.floor(zs.length * 0.05)] : zlo; P.zhi = zs.length ? zs[Math.floor(zs.length * 0.95)] : zhi;
-      P.local = L; P.B = B;
+      // Each point's colour once per points message, not per point and frame.
+      const span = (P.zhi - P.zlo) || 1, rgba = new Uint32Array(n);
+      for (let i = 0; i < n; i++) rgba[i] = heightRGBA((L[3 * i + 2] - P.zlo) / span, 230);
+      P.local = L; P.B = B; P.rgba = rgba;
     }
     out.pts = P;
   }
@@ -254,35 +263,58 @@ function bounds(sc) {
 // --- canvases ---------------------------------------------------------------------------------
 function Surface(id) {
   const cv = document.getElementById(id);
-  const s = { cv, cx: cv.getContext("2d"), w: 0, h: 0, dpr: 1, off: document.createElement("canvas") };
+  const s = { cv, cx: cv.getContext("2d", { alpha: false }), w: 0, h: 0, dpr: 1,
+    off: document.createElement("canvas"), layer: document.createElement("canvas") };
+  s.lcx = s.layer.getContext("2d", { alpha: false });
   s.resize = () => {
     const r = cv.getBoundingClientRect();
     s.dpr = window.devicePixelRatio || 1;
     const w = Math.max(1, Math.round(r.width * s.dpr)), h = Math.max(1, Math.round(r.height * s.dpr));
     if (w !== cv.width || h !== cv.height) {
-      cv.width = w; cv.height = h; s.off.width = w; s.off.height = h;
+      cv.width = w; cv.height = h; s.off.width = w; s.off.height = h; s.layer.width = w; s.layer.height = h;
+      s.layerKey = null;
       s.img = s.off.getContext("2d").createImageData(w, h);
       s.buf = new Uint32Array(s.img.data.buffer);
     }
     s.w = w; s.h = h;
   };
-  // Map points as 2x2 pixels through a buffer: tens of thousands cost a millisecond.
-  s.points = (P, project) => {
+  // Map points as 2x2 pixels through a buffer: tens of thousands cost a millisecond. The
+  // projections are written out (no closure, no array per point): the orbit view turns,
+  // so its points are projected every frame.
+  s.plot = (P, proj) => {
     s.buf.fill(0);
-    const L = P.local, n = L.length / 3, W = s.w, H = s.h, span = (P.zhi - P.zlo) || 1;
+    const L = P.local, C = P.rgba, n = L.length / 3, W = s.w, H = s.h, buf = s.buf;
     let drawn = 0;
-    for (let i = 0; i < n; i++) {
-      const q = project(L[3 * i], L[3 * i + 1], L[3 * i + 2]);
-      if (!q) continue;
-      const x = q[0] | 0, y = q[1] | 0;
-      if (x < 0 || y < 0 || x >= W - 1 || y >= H - 1) continue;
-      const c = heightRGBA((L[3 * i + 2] - P.zlo) / span, 230), o = y * W + x;
-      s.buf[o] = c; s.buf[o + 1] = c; s.buf[o + W] = c; s.buf[o + W + 1] = c;
-      drawn++;
+    if (proj.affine) {
+      const { ox, sx, oy, sy } = proj;
+      for (let i = 0; i < n; i++) {
+        const x = (ox + L[3 * i] * sx) | 0, y = (oy + L[3 * i + 1] * sy) | 0;
+        if (x < 0 || y < 0 || x >= W - 1 || y >= H - 1) continue;
+        const c = C[i], o = y * W + x;
+        buf[o] = c; buf[o + 1] = c; buf[o + W] = c; buf[o + W + 1] = c;
+        drawn++;
+      }
+    } else {
+      const { eye, r, u, f, F } = proj, cxp = W / 2, cyp = H / 2;
+      for (let i = 0; i < n; i++) {
+        const dx = L[3 * i] - eye[0], dy = L[3 * i + 1] - eye[1], dz = L[3 * i + 2] - eye[2];
+        const zc = dx * f[0] + dy * f[1] + dz * f[2];
+        if (zc < 0.05) continue;
+        const x = (cxp + F * (dx * r[0] + dy * r[1] + dz * r[2]) / zc) | 0;
+        const y = (cyp - F * (dx * u[0] + dy * u[1] + dz * u[2]) / zc) | 0;
+        if (x < 0 || y < 0 || x >= W - 1 || y >= H - 1) continue;
+        const c = C[i], o = y * W + x;
+        buf[o] = c; buf[o + 1] = c; buf[o + W] = c; buf[o + W + 1] = c;
+        drawn++;
+      }
     }
     s.off.getContext("2d").putImageData(s.img, 0, 0);
-    s.cx.drawImage(s.off, 0, 0);
     return drawn;
+  };
+  s.points = (P, proj, cx = s.cx) => {
+    const n = s.plot(P, proj);
+    cx.drawImage(s.off, 0, 0);
+    return n;
   };
   return s;
 }
@@ -326,71 +358,57 @@ Object.assign(orbit, { az: 0.6, el: 0.5, dragUntil: 0, last: performance.now() }
 
 function drawTop(sc, bb, now) {
   const s = top2d, cx = s.cx, W = s.w, H = s.h, d = s.dpr;
-  cx.fillStyle = "#0e1116"; cx.fillRect(0, 0, W, H);
-  if (!bb) { emptyNote(s, "waiting for keyframes…"); return; }
+  if (!bb) { cx.fillStyle = "#0e1116"; cx.fillRect(0, 0, W, H); emptyNote(s, "waiting for keyframes…"); return; }
   const pad = 60 * d;
   const tgt = {
     cx: (bb.x0 + bb.x1) / 2, cy: (bb.y0 + bb.y1) / 2,
     s: Math.min((W - 2 * pad) / Math.max(bb.x1 - bb.x0, 0.5), (H - 2 * pad) / Math.max(bb.y1 - bb.y0, 0.5)),
   };
-  if (!s.view || s.fitNext) { s.view = { ...tgt }; s.fitNext = false; }
+  if (!s.view || s.fitNext) { s.view = { ...tgt }; s.goal = { ...tgt }; s.fitNext = false; }
   else if (!s.user) {
-    // Ease towards the fit: the view follows a growing map without jumping.
-    const k = 0.08;
-    s.view.cx += (tgt.cx - s.view.cx) * k; s.view.cy += (tgt.cy - s.view.cy) * k;
-    s.view.s *= Math.pow(tgt.s / s.view.s, k);
+    // A new fit only when the map leaves the view's margin or has become much smaller
+    // than it, then eased towards: the view follows a growing map without jumping, and
+    // holds still in between, so the points layer is not redrawn every frame.
+    const g = s.goal, hw = (W / 2 - pad / 2) / g.s, hh = (H / 2 - pad / 2) / g.s;
+    if (bb.x0 < g.cx - hw || bb.x1 > g.cx + hw || bb.y0 < g.cy - hh || bb.y1 > g.cy + hh || tgt.s > 1.3 * g.s) {
+      s.goal = { ...tgt };
+    }
+    const v = s.view, G = s.goal, k = 0.08;
+    if (Math.abs(G.cx - v.cx) * v.s < 0.5 && Math.abs(G.cy - v.cy) * v.s < 0.5 && Math.abs(Math.log(G.s / v.s)) < 0.002) {
+      s.view = { ...G };
+    } else {
+      v.cx += (G.cx - v.cx) * k; v.cy += (G.cy - v.cy) * k;
+      v.s *= Math.pow(G.s / v.s, k);
+    }
   }
   const v = s.view;
   const X = (x) => W / 2 + (x - v.cx) * v.s, Y = (y) => H / 2 - (y - v.cy) * v.s;
 
-  // Grid: 1-2-5 steps about 90 px apart, labelled in metres along the edges.
-  const step = niceStep(90 * d / v.s);
-  const gx0 = Math.floor((v.cx - W / 2 / v.s) / step), gx1 = Math.ceil((v.cx + W / 2 / v.s) / step);
-  const gy0 = Math.floor((v.cy - H / 2 / v.s) / step), gy1 = Math.ceil((v.cy + H / 2 / v.s) / step);
-  cx.lineWidth = 1;
-  cx.font = `${11 * d}px system-ui, sans-serif`;
-  for (let i = gx0; i <= gx1; i++) {
-    cx.strokeStyle = i === 0 ? "#3b4756" : "#1d242d";
-    cx.beginPath(); cx.moveTo(Math.round(X(i * step)) + 0.5, 0); cx.lineTo(Math.round(X(i * step)) + 0.5, H); cx.stroke();
+  // What changes only with the view or with a message from the server (grid, points,
+  // keyframe trajectories, loops, merges, scale bar) is drawn into a layer kept between
+  // frames; a frame copies it and draws what moves on top. In software (no GPU, a
+  // small server's cores) drawing all of it every frame cost more than the rest of the
+  // page together.
+  const key = `${v.cx},${v.cy},${v.s},${W},${H},${sc.mapId},${S.merges.length}`;
+  if (key !== s.layerKey || sc.trajs !== s.layerTrajs || (sc.pts && sc.pts.local) !== s.layerPts || sc.loops.length !== s.layerLoops) {
+    drawTopLayer(s, sc, v, X, Y);
+    Object.assign(s, { layerKey: key, layerTrajs: sc.trajs, layerPts: sc.pts && sc.pts.local, layerLoops: sc.loops.length });
   }
-  for (let j = gy0; j <= gy1; j++) {
-    cx.strokeStyle = j === 0 ? "#3b4756" : "#1d242d";
-    cx.beginPath(); cx.moveTo(0, Math.round(Y(j * step)) + 0.5); cx.lineTo(W, Math.round(Y(j * step)) + 0.5); cx.stroke();
-  }
-  cx.fillStyle = "#5d6875";
-  const dec = Math.max(0, -Math.floor(Math.log10(step)));
-  for (let i = gx0; i <= gx1; i++) cx.fillText((i * step).toFixed(dec), X(i * step) + 3 * d, H - 6 * d);
-  for (let j = gy0; j <= gy1; j++) cx.fillText((j * step).toFixed(dec), 4 * d, Y(j * step) - 3 * d);
+  cx.drawImage(s.layer, 0, 0);
 
-  let npts = 0;
-  if (sc.pts) npts = s.points(sc.pts, (x, y) => [X(x), Y(y)]);
-  stats.drawn.points = npts;
-
-  // Loops: dashed magenta between the two keyframes.
-  cx.setLineDash([6 * d, 4 * d]); cx.strokeStyle = "#ff4fd8"; cx.lineWidth = 1.5 * d;
-  for (const [a, b] of sc.loops) { cx.beginPath(); cx.moveTo(X(a[0]), Y(a[1])); cx.lineTo(X(b[0]), Y(b[1])); cx.stroke(); }
-  cx.setLineDash([]);
-
-  // Trajectories and keyframes.
-  for (const a in sc.trajs) {
-    const t = sc.trajs[a], c = colour(a);
-    cx.strokeStyle = c; cx.lineWidth = 2 * d; cx.beginPath();
-    t.forEach((p, i) => (i ? cx.lineTo(X(p[0]), Y(p[1])) : cx.moveTo(X(p[0]), Y(p[1]))));
-    const g = sc.poses.find((q) => q.agent === a);
-    if (g) cx.lineTo(X(g.p[0]), Y(g.p[1]));
-    cx.stroke();
-    cx.fillStyle = c;
-    const k = 3 * d;
-    for (const p of t) cx.fillRect(X(p[0]) - k / 2, Y(p[1]) - k / 2, k, k);
+  // From each agent's newest keyframe to where it is now.
+  for (const q of sc.poses) {
+    const t = sc.trajs[q.agent];
+    if (!t || !t.length) continue;
+    const p = t[t.length - 1];
+    cx.strokeStyle = colour(q.agent); cx.lineWidth = 2 * d; cx.beginPath();
+    cx.moveTo(X(p[0]), Y(p[1])); cx.lineTo(X(q.p[0]), Y(q.p[1])); cx.stroke();
   }
 
-  // Merges: an amber diamond where it happened, a ring spreading out for 4 s after.
+  // A ring spreading out for 4 s after a merge or a loop.
   for (const m of sc.merges) {
-    const x = X(m.p[0]), y = Y(m.p[1]), r = 8 * d;
-    cx.fillStyle = "#ffb000"; cx.beginPath();
-    cx.moveTo(x, y - r); cx.lineTo(x + r, y); cx.lineTo(x, y + r); cx.lineTo(x - r, y); cx.closePath(); cx.fill();
     const age = (now - m.e.seen) / 4000;
-    if (age < 1) { cx.strokeStyle = `rgba(255,176,0,${1 - age})`; cx.lineWidth = 2 * d; cx.beginPath(); cx.arc(x, y, r + age * 60 * d, 0, 7); cx.stroke(); }
+    if (age < 1) { cx.strokeStyle = `rgba(255,176,0,${1 - age})`; cx.lineWidth = 2 * d; cx.beginPath(); cx.arc(X(m.p[0]), Y(m.p[1]), 8 * d + age * 60 * d, 0, 7); cx.stroke(); }
   }
   for (const e of S.events) {
     if (e.kind !== "loop" || e.map_id !== sc.mapId || now - e.seen > 4000 || !e.at) continue;
@@ -426,6 +444,57 @@ function drawTop(sc, bb, now) {
   }
   stats.drawn.agents = sc.poses.length;
 
+}
+
+// The top view's layer: everything drawTop does not animate, for view ``v``.
+function drawTopLayer(s, sc, v, X, Y) {
+  const cx = s.lcx, W = s.w, H = s.h, d = s.dpr;
+  cx.fillStyle = "#0e1116"; cx.fillRect(0, 0, W, H);
+  // Grid: 1-2-5 steps about 90 px apart, labelled in metres along the edges.
+  const step = niceStep(90 * d / v.s);
+  const gx0 = Math.floor((v.cx - W / 2 / v.s) / step), gx1 = Math.ceil((v.cx + W / 2 / v.s) / step);
+  const gy0 = Math.floor((v.cy - H / 2 / v.s) / step), gy1 = Math.ceil((v.cy + H / 2 / v.s) / step);
+  cx.lineWidth = 1;
+  cx.font = `${11 * d}px system-ui, sans-serif`;
+  for (let i = gx0; i <= gx1; i++) {
+    cx.strokeStyle = i === 0 ? "#3b4756" : "#1d242d";
+    cx.beginPath(); cx.moveTo(Math.round(X(i * step)) + 0.5, 0); cx.lineTo(Math.round(X(i * step)) + 0.5, H); cx.stroke();
+  }
+  for (let j = gy0; j <= gy1; j++) {
+    cx.strokeStyle = j === 0 ? "#3b4756" : "#1d242d";
+    cx.beginPath(); cx.moveTo(0, Math.round(Y(j * step)) + 0.5); cx.lineTo(W, Math.round(Y(j * step)) + 0.5); cx.stroke();
+  }
+  cx.fillStyle = "#5d6875";
+  const dec = Math.max(0, -Math.floor(Math.log10(step)));
+  for (let i = gx0; i <= gx1; i++) cx.fillText((i * step).toFixed(dec), X(i * step) + 3 * d, H - 6 * d);
+  for (let j = gy0; j <= gy1; j++) cx.fillText((j * step).toFixed(dec), 4 * d, Y(j * step) - 3 * d);
+
+  const proj = { affine: true, ox: W / 2 - v.cx * v.s, sx: v.s, oy: H / 2 + v.cy * v.s, sy: -v.s };
+  stats.drawn.points = sc.pts ? s.points(sc.pts, proj, cx) : 0;
+
+  // Loops: dashed magenta between the two keyframes.
+  cx.setLineDash([6 * d, 4 * d]); cx.strokeStyle = "#ff4fd8"; cx.lineWidth = 1.5 * d;
+  for (const [a, b] of sc.loops) { cx.beginPath(); cx.moveTo(X(a[0]), Y(a[1])); cx.lineTo(X(b[0]), Y(b[1])); cx.stroke(); }
+  cx.setLineDash([]);
+
+  // Keyframe trajectories.
+  for (const a in sc.trajs) {
+    const t = sc.trajs[a], c = colour(a);
+    cx.strokeStyle = c; cx.lineWidth = 2 * d; cx.beginPath();
+    t.forEach((p, i) => (i ? cx.lineTo(X(p[0]), Y(p[1])) : cx.moveTo(X(p[0]), Y(p[1]))));
+    cx.stroke();
+    cx.fillStyle = c;
+    const k = 3 * d;
+    for (const p of t) cx.fillRect(X(p[0]) - k / 2, Y(p[1]) - k / 2, k, k);
+  }
+
+  // Merges: an amber diamond where it happened.
+  for (const m of sc.merges) {
+    const x = X(m.p[0]), y = Y(m.p[1]), r = 8 * d;
+    cx.fillStyle = "#ffb000"; cx.beginPath();
+    cx.moveTo(x, y - r); cx.lineTo(x + r, y); cx.lineTo(x, y + r); cx.lineTo(x - r, y); cx.closePath(); cx.fill();
+  }
+
   // Scale bar, bottom left, and the axes, bottom right.
   const L = niceStep(140 * d / v.s), px = L * v.s, bx = 20 * d, by = H - 28 * d;
   cx.fillStyle = "rgba(14,17,22,0.75)"; cx.fillRect(bx - 8 * d, by - 20 * d, px + 16 * d, 34 * d);
@@ -444,6 +513,7 @@ function drawTop(sc, bb, now) {
   cx.fillStyle = "#5dff8a"; cx.fillText("y", ax - 4 * d, ay - al - 4 * d);
   cx.fillStyle = "#8b96a5"; cx.fillText(`map ${sc.mapId} · grid ${fmtLen(+step.toPrecision(3))}`, 10 * d, 36 * d);
 }
+
 
 function drawOrbit(sc, bb, now) {
   const s = orbit, cx = s.cx, W = s.w, H = s.h, d = s.dpr;
@@ -476,7 +546,7 @@ function drawOrbit(sc, bb, now) {
       if (p && q) { cx.beginPath(); cx.moveTo(p[0], p[1]); cx.lineTo(q[0], q[1]); cx.stroke(); }
     }
   }
-  if (sc.pts) s.points(sc.pts, P);
+  if (sc.pts) s.points(sc.pts, { eye, r, u, f, F });
   cx.setLineDash([5 * d, 4 * d]); cx.strokeStyle = "#ff4fd8"; cx.lineWidth = 1.5 * d;
   for (const [a, b] of sc.loops) {
     const p = P(...a), q = P(...b);
