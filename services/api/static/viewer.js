@@ -126,12 +126,14 @@ function status(g) {
 function renderSide() {
   const tb = document.querySelector("#agents tbody");
   const rows = Object.values(S.agents).sort((a, b) => a.agent.localeCompare(b.agent, undefined, { numeric: true }));
-  tb.innerHTML = rows.map((g) => {
+  // Rewritten only when it reads differently: a new table is a layout of the page.
+  const html = rows.map((g) => {
     const st = status(g);
     return `<tr><td><span class="sw" style="background:${colour(g.agent)}"></span></td><td>${esc(g.agent)}</td>` +
       `<td><span class="st ${st}">${st}</span></td><td>${esc(g.map_id || "")}</td>` +
       `<td class="num">${g.n_kf ?? ""}</td><td class="num">${g.fps != null ? g.fps.toFixed(0) : ""}</td></tr>`;
   }).join("");
+  if (html !== renderSide.html) { tb.innerHTML = html; renderSide.html = html; }
   const live = S.maps.filter((m) => !m.merged_into);
   const bar = document.getElementById("maps");
   const want = live.map((m) => m.map_id + (m.map_id === S.sel ? "*" : "") + m.n_kf).join();
@@ -148,9 +150,11 @@ function renderSide() {
   }
   const nkf = live.reduce((s, m) => s + m.n_kf, 0);
   const pts = S.points[S.sel];
-  document.getElementById("totals").textContent =
+  const totals = document.getElementById("totals");
+  const text =
     `${rows.length} agents · ${live.length} map${live.length === 1 ? "" : "s"} · ${nkf} keyframes` +
     (pts ? ` · ${pts.total} points (${pts.n} shown)` : "");
+  if (totals.textContent !== text) totals.textContent = text;
 }
 setInterval(renderSide, 1000);
 
