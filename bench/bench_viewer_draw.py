@@ -6,9 +6,10 @@ a ``state`` every 1.5 s (N agents, a keyframe trajectory of K keyframes each, on
 ``poses`` every 100 ms (every agent moving), ``points`` every 5 s (P points). No server
 runs, so the figure is the browser's alone and does not vary with a stack's timing.
 
-Measured over ``--seconds``: frames per second the page draws, the JavaScript time of a
-frame (``drawMs``, the page's own median), and the CPU the browser's processes used
-(cores, per process type: the renderer rasterizes the canvases in software here, which
+Measured over ``--seconds``: frames per second the page draws, how many of them redrew
+the top view's still layer (points, trajectories, grid), the JavaScript time of a frame
+(``drawMs``, the page's own median), and the CPU the browser's processes used (cores,
+per process type: the renderer rasterizes the canvases in software here, which
 ``drawMs`` does not include). ``--js FILE`` draws with another viewer.js (an older
 version, to compare). Writes bench/results/NAME.json.
 
@@ -136,16 +137,20 @@ def measure(js: Path, seconds: float, n_agents: int, n_kf: int, n_points: int) -
             page.wait_for_function(shown, timeout=30_000)
             time.sleep(2.0)
             c0, t0 = cpu_by_type(os.getpid()), time.monotonic()
-            f0, w0 = page.evaluate("[hivemapViewer.frames, performance.now()]")
+            now = "[hivemapViewer.frames, performance.now(), hivemapViewer.layers]"
+            f0, w0, l0 = page.evaluate(now)
             time.sleep(seconds)
-            f1, w1 = page.evaluate("[hivemapViewer.frames, performance.now()]")
+            f1, w1, l1 = page.evaluate(now)
             c1, dt = cpu_by_type(os.getpid()), time.monotonic() - t0
             d = page.evaluate("({ms: hivemapViewer.drawMs, points: hivemapViewer.drawn.points})")
     finally:
         srv.shutdown()
         shutil.rmtree(site, ignore_errors=True)
     cores = {k: round((v - c0.get(k, 0.0)) / dt, 3) for k, v in c1.items()}
+    # An older viewer.js has no layer (None).
+    layers = None if l0 is None or l1 is None else (l1 - l0) * 1000 / (w1 - w0)
     return {"js": str(js), "fps": (f1 - f0) * 1000 / (w1 - w0), "draw_ms": d["ms"],
+            "layer_redraws_per_s": layers,
             "points_drawn": d["points"], "browser_cores": round(sum(cores.values()), 3),
             "cores_by_process": cores}  # fmt: skip
 
@@ -172,7 +177,8 @@ def main() -> int:
     path = write_report(args.name, {"agents": args.agents, "keyframes_per_agent": args.keyframes,
                                     "points": args.points, "seconds": args.seconds,
                                     "loadavg_1m_at_end": load[0], "rows": rows})  # fmt: skip
-    print(table(rows, ["js", "fps", "draw_ms", "points_drawn", "browser_cores"]))
+    print(table(rows, ["js", "fps", "layer_redraws_per_s", "draw_ms", "points_drawn",
+                       "browser_cores"]))  # fmt: skip
     print(f"written {path}")
     return 0
 

@@ -12,8 +12,9 @@ const S = {
   maps: [], agents: {}, order: [], trajs: {}, loops: {}, points: {}, merges: [], events: [],
   sel: null, pinned: false, connected: false, lastMsg: 0, basis: {},
 };
-// What the browser test reads: frames drawn, the measured rate, what is on screen.
-const stats = window.hivemapViewer = { frames: 0, fps: 0, messages: 0, drawn: { agents: 0, points: 0, poses: {} } };
+// What the browser test reads: frames drawn (and how many of them redrew the top view's
+// still layer), the measured rate, what is on screen.
+const stats = window.hivemapViewer = { frames: 0, layers: 0, fps: 0, messages: 0, drawn: { agents: 0, points: 0, poses: {} } };
 
 // An agent named after a colour ("red", "Blue") is drawn in it, lightened so that it
 // shows on the dark background; any other name takes the next palette colour. Resolved
@@ -396,6 +397,7 @@ function drawTop(sc, bb, now) {
   const key = `${v.cx},${v.cy},${v.s},${W},${H},${sc.mapId},${S.merges.length}`;
   if (key !== s.layerKey || sc.trajs !== s.layerTrajs || (sc.pts && sc.pts.local) !== s.layerPts || sc.loops.length !== s.layerLoops) {
     drawTopLayer(s, sc, v, X, Y);
+    stats.layers++;
     Object.assign(s, { layerKey: key, layerTrajs: sc.trajs, layerPts: sc.pts && sc.pts.local, layerLoops: sc.loops.length });
   }
   cx.drawImage(s.layer, 0, 0);
