@@ -498,6 +498,10 @@ def _dump(h: AgentHandler, now_ns: int, S_g_l: np.ndarray | None) -> None:
     )  # fmt: skip
 
 
+# Own keyframes more than this many ids apart count as a tie beyond the VO chain (a loop).
+TIE_GAP = 20
+
+
 def _ties(smap, kf) -> tuple[int, int, int]:
     """Covisibility weights (points shared, summed over keyframes) of a keyframe with
     other agents' keyframes, with the agent's own more than TIE_GAP ids away, and in
@@ -514,6 +518,3 @@ def _ties(smap, kf) -> tuple[int, int, int]:
         elif abs(ok.id - kf.id) > TIE_GAP:
             far += n
     return cross, far, sum(c.values())
-
-
-TIE_GAP = 20

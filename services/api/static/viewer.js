@@ -449,7 +449,6 @@ function drawTop(sc, bb, now) {
     stats.drawn.poses[q.agent] = { x: x / d, y: y / d, world: q.p.slice(), status: q.st };
   }
   stats.drawn.agents = sc.poses.length;
-
 }
 
 // The top view's layer: everything drawTop does not animate, for view ``v``.
@@ -519,7 +518,6 @@ function drawTopLayer(s, sc, v, X, Y) {
   cx.fillStyle = "#5dff8a"; cx.fillText("y", ax - 4 * d, ay - al - 4 * d);
   cx.fillStyle = "#8b96a5"; cx.fillText(`map ${sc.mapId} · grid ${fmtLen(+step.toPrecision(3))}`, 10 * d, 36 * d);
 }
-
 
 function drawOrbit(sc, bb, now) {
   const s = orbit, cx = s.cx, W = s.w, H = s.h, d = s.dpr;
