@@ -40,9 +40,6 @@ COLLAB = ("placerec", "optimizer")
 AGENT_NICE = 10
 
 
-LAT = "hivemap_keyframe_latency_seconds"  # the mapper's keyframe latency histogram
-
-
 def hist_quantile(metrics: dict[str, float], name: str, labels: str, q: float) -> float:
     """Quantile of a Prometheus histogram from its cumulative buckets (linear within the
     bucket, as PromQL's histogram_quantile)."""
@@ -141,9 +138,9 @@ def run_latency(
             "p95_ms": 1e3 * st["ack_latency_p95_s"],
             "mapper_mean_ms": common.mapper_latency_mean_ms(metrics, agent),
             "mapper_median_ms": 1e3 * hist_quantile(
-                metrics, LAT, f'agent="{agent}"', 0.5),
+                metrics, common.LAT, f'agent="{agent}"', 0.5),
             "mapper_p95_ms": 1e3 * hist_quantile(
-                metrics, LAT, f'agent="{agent}"', 0.95),
+                metrics, common.LAT, f'agent="{agent}"', 0.95),
             "culled_total": sum(v for k, v in metrics.items()
                                 if k.startswith("hivemap_keyframes_culled_total{")),
             "map_kfs": {k.split('"')[1]: v for k, v in metrics.items()

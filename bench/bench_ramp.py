@@ -41,9 +41,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, LAT, pooled_quantile  # noqa: E402
+from bench_mapper import AGENT_NICE, pooled_quantile  # noqa: E402
 from bench_scale import cpu_s  # noqa: E402
-from common import ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
+from common import LAT, ProcWatch, mapper_metrics, stack_settings, table, write_report  # noqa: E402
 from plots import latency_vs_team  # noqa: E402
 
 from services.launcher import Stack, _hivemap_exe  # noqa: E402

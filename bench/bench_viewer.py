@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from bench_mapper import AGENT_NICE, LAT, hist_quantile, pooled_quantile  # noqa: E402
-from common import RESULTS, scrape, table, write_report  # noqa: E402
+from bench_mapper import AGENT_NICE, hist_quantile, pooled_quantile  # noqa: E402
+from common import LAT, RESULTS, scrape, table, write_report  # noqa: E402
 from live_stack import chromium_missing, stack_settings, viewer_page  # noqa: E402
 from plots import (  # noqa: E402
     TrafficSampler,

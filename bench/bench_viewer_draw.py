@@ -35,11 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from common import table, write_report  # noqa: E402
+from common import ProcWatch, table, write_report  # noqa: E402
 from live_stack import chromium_missing, viewer_page  # noqa: E402
 
 STATIC = Path(__file__).resolve().parents[1] / "services" / "api" / "static"
-HZ = os.sysconf("SC_CLK_TCK")
 
 
 def feed(n_agents: int, n_kf: int, n_points: int) -> tuple[dict, dict]:
@@ -94,28 +93,14 @@ FAKE_WS = """
 """
 
 
-def cpu_by_type(root: int) -> dict[str, float]:
-    """CPU seconds of ``root``'s descendants, by Chromium process type."""
-    kids: dict[int, list[tuple[int, int, str]]] = {}
-    for q in os.listdir("/proc"):
-        if not q.isdigit():
-            continue
-        try:
-            st = Path(f"/proc/{q}/stat").read_text()
-            f = st[st.rfind(")") + 2 :].split()
-            cmd = Path(f"/proc/{q}/cmdline").read_bytes().decode(errors="replace")
-        except OSError:
-            continue
-        kind = next((k for k in ("renderer", "gpu-process", "utility", "zygote")
-                     if f"--type={k}" in cmd), "browser")  # fmt: skip
-        kids.setdefault(int(f[1]), []).append((int(q), int(f[11]) + int(f[12]), kind))
-    out: dict[str, float] = {}
-    todo = [root]
-    while todo:
-        for pid, ticks, kind in kids.get(todo.pop(), []):
-            out[kind] = out.get(kind, 0.0) + ticks / HZ
-            todo.append(pid)
-    return out
+def chromium_kind(pid: int) -> str:
+    """A Chromium process's type (renderer, gpu-process, ...) from its command line;
+    "bench" for this process, whose CPU is not the page's."""
+    if pid == os.getpid():
+        return "bench"
+    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    return next((k for k in ("renderer", "gpu-process", "utility", "zygote")
+                 if f"--type={k}" in cmd), "browser")  # fmt: skip
 
 
 def measure(js: Path, seconds: float, n_agents: int, n_kf: int, n_points: int) -> dict:
@@ -129,6 +114,7 @@ def measure(js: Path, seconds: float, n_agents: int, n_kf: int, n_points: int) -
     handler.log_message = lambda *a: None  # type: ignore[attr-defined]
     srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
+    watch = ProcWatch(os.getpid(), kind=chromium_kind)
     try:
         with viewer_page("about:blank") as page:
             page.add_init_script(FAKE_WS % (json.dumps(state), json.dumps(points)))
@@ -136,17 +122,18 @@ def measure(js: Path, seconds: float, n_agents: int, n_kf: int, n_points: int) -
             shown = f"window.hivemapViewer.drawn.agents == {n_agents}"
             page.wait_for_function(shown, timeout=30_000)
             time.sleep(2.0)
-            c0, t0 = cpu_by_type(os.getpid()), time.monotonic()
+            c0, t0 = watch.cpu_by_kind(), time.monotonic()
             now = "[hivemapViewer.frames, performance.now(), hivemapViewer.layers]"
             f0, w0, l0 = page.evaluate(now)
             time.sleep(seconds)
             f1, w1, l1 = page.evaluate(now)
-            c1, dt = cpu_by_type(os.getpid()), time.monotonic() - t0
+            c1, dt = watch.cpu_by_kind(), time.monotonic() - t0
             d = page.evaluate("({ms: hivemapViewer.drawMs, points: hivemapViewer.drawn.points})")
     finally:
+        watch.stop()
         srv.shutdown()
         shutil.rmtree(site, ignore_errors=True)
-    cores = {k: round((v - c0.get(k, 0.0)) / dt, 3) for k, v in c1.items()}
+    cores = {k: round((v - c0.get(k, 0.0)) / dt, 3) for k, v in c1.items() if k != "bench"}
     # An older viewer.js has no layer (None).
     layers = None if l0 is None or l1 is None else (l1 - l0) * 1000 / (w1 - w0)
     return {"js": str(js), "fps": (f1 - f0) * 1000 / (w1 - w0), "draw_ms": d["ms"],

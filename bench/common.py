@@ -11,6 +11,7 @@ import subprocess
 import threading
 import time
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -94,10 +95,13 @@ def mapper_metrics(stack) -> dict[str, float]:
     return scrape(f"http://127.0.0.1:{stack.settings.mapper_metrics_port}/metrics")
 
 
+LAT = "hivemap_keyframe_latency_seconds"  # the mapper's keyframe latency histogram
+
+
 def mapper_latency_mean_ms(metrics: dict[str, float], agent: str, missing=float("nan")):
     """The mapper's mean keyframe latency (received -> stored and acked) for ``agent``."""
-    cnt = metrics.get(f'hivemap_keyframe_latency_seconds_count{{agent="{agent}"}}', 0)
-    tot = metrics.get(f'hivemap_keyframe_latency_seconds_sum{{agent="{agent}"}}', 0)
+    cnt = metrics.get(f'{LAT}_count{{agent="{agent}"}}', 0)
+    tot = metrics.get(f'{LAT}_sum{{agent="{agent}"}}', 0)
     return 1e3 * tot / cnt if cnt else missing
 
 
@@ -142,13 +146,17 @@ class ProcWatch:
     sampled in the background until they exit, so the figures survive the processes:
     how much CPU the simulated agents got, and how long their threads were ready to
     run but waited for a core (``/proc/PID/task/*/schedstat``: on-CPU ns, run-queue
-    wait ns, slices)."""
+    wait ns, slices). ``kind(pid)`` names what a process is, for :meth:`cpu_by_kind`."""
 
-    def __init__(self, pid: int, interval: float = 0.5, children: bool = True) -> None:
+    def __init__(self, pid: int, interval: float = 0.5, children: bool = True,
+                 kind: Callable[[int], str] | None = None) -> None:  # fmt: skip
         self.pid = pid
         self.children = children  # follow child processes (a scan of /proc per sample)
         self._tasks: dict[tuple[int, str], tuple[int, int]] = {}  # (pid, tid) -> cpu, wait
         self.pids: set[int] = {pid}
+        self._kind = kind
+        self._kinds: dict[int, str] = {}
+        self._lock = threading.Lock()  # the background thread and cpu_by_kind both sample
         self._interval = interval
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -171,10 +179,17 @@ class ProcWatch:
         return out
 
     def _sample(self) -> bool:
+        with self._lock:
+            return self._sample_locked()
+
+    def _sample_locked(self) -> bool:
         alive = False
         if self.children:
             self.pids |= self._descendants()
         for pid in self.pids:
+            if self._kind is not None and pid not in self._kinds:
+                with contextlib.suppress(OSError):
+                    self._kinds[pid] = self._kind(pid)
             base = Path(f"/proc/{pid}/task")
             try:
                 tids = [t.name for t in base.iterdir()]
@@ -190,6 +205,17 @@ class ProcWatch:
     def _run(self) -> None:
         while not self._stop.is_set() and self._sample():
             self._stop.wait(self._interval)
+
+    def cpu_by_kind(self) -> dict[str, float]:
+        """CPU seconds so far (a fresh sample) per ``kind`` of process; the difference of
+        two calls is what each kind used between them."""
+        self._sample()
+        with self._lock:
+            out: dict[str, float] = {}
+            for (pid, _), (run, _) in self._tasks.items():
+                k = self._kinds.get(pid, "?")
+                out[k] = out.get(k, 0.0) + run * 1e-9
+            return out
 
     def stop(self) -> dict:
         self._stop.set()
