@@ -9,7 +9,7 @@ estimate is the ground truth expressed in the frame of the first camera.
 
 Cheap by design (the load-test agent): per frame a few 4x4 products; per keyframe
 one vectorized pass over the landmarks that keeps those inside the view cone and
-projects only them (~2 ms, so tens of agents share one core).
+projects only them (~3 ms on this Xeon, so tens of agents share one core).
 """
 
 from __future__ import annotations
@@ -67,7 +67,9 @@ class LandmarkWorld:
             pts.append(self._box_surface(rng, plo, phi, density * 2, sides_only=True))
             n_pillars += 1
         self.points = np.concatenate(pts)
-        self.points_t = np.ascontiguousarray(self.points.T)  # (3, N): fast column access
+        # float32 copy for culling only (a margin covers its rounding): half the memory
+        # traffic of the one pass over every landmark that each keyframe makes.
+        self.points32 = self.points.astype(np.float32)
         self.descriptors = rng.integers(0, 256, size=(len(self.points), 32), dtype=np.uint8)
         self.lo, self.hi = lo, hi
 
@@ -133,11 +135,18 @@ class SimAgent:
         self.state = SimAgentState()
         self.next_kf_id = 0
         self.next_mp_id = 0
-        self.lm_to_mp: dict[int, int] = {}
+        self._mp_of_lm = np.full(len(world.points), -1, np.int64)  # landmark -> map point
         self.last_kf: tuple[int, np.ndarray, np.ndarray, int] | None = None  # id, T_l, T_w, ns
         self.recent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.covis_window = covis_window
         self._cone2 = _view_cone_tan2(self.cam)
+        self._frustum = _view_frustum(self.cam)
+
+    @property
+    def lm_to_mp(self) -> dict[int, int]:
+        """Landmark id -> this agent's map point id, for the landmarks it has mapped."""
+        lms = np.nonzero(self._mp_of_lm >= 0)[0]
+        return dict(zip(lms.tolist(), self._mp_of_lm[lms].tolist(), strict=True))
 
     def __len__(self) -> int:
         return len(self.traj)
@@ -193,19 +202,32 @@ class SimAgent:
     def observe(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Visible landmark ids, their true camera-frame points and noisy pixels."""
         c, R = T_w_c[:3, 3], T_w_c[:3, :3]
-        Pt = self.world.points_t
-        dx, dy, dz = Pt[0] - c[0], Pt[1] - c[1], Pt[2] - c[2]
-        x = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
-        y = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
-        z = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
         # Projecting every landmark of the hall cost most of a keyframe; only points in
-        # the depth range and inside a cone that contains the image can be valid. (A
-        # (N, 3) @ (3, 3) product is slow in numpy, hence the three columns.)
-        cand = (z > 0.2) & (z < self.max_range) & (x * x + y * y <= self._cone2 * z * z)
+        # the depth range and inside a cone that contains the image can be valid. The
+        # cull runs in float32 over all landmarks as three matrix-vector products (an
+        # (N, 3) @ (3, 3) product is slow in numpy), with a 5 cm margin on the depth for
+        # float32's rounding; the exact tests are repeated in float64 on the survivors.
+        P32 = self.world.points32
+        r = R.astype(np.float32)
+        off = c.astype(np.float32) @ r
+        x = P32 @ r[:, 0] - off[0]
+        y = P32 @ r[:, 1] - off[1]
+        z = P32 @ r[:, 2] - off[2]
+        zn = z + np.float32(0.05)
+        cand = (z > 0.15) & (zn < self.max_range + 0.1)
+        cand &= x * x + y * y <= np.float32(self._cone2) * zn * zn
         near = np.nonzero(cand)[0]
         D = self.world.points[near] - c
-        keep = np.abs(D).max(axis=1) < self.max_range
-        near, X_c = near[keep], D[keep] @ R
+        X_c = D @ R
+        x, y, z = X_c[:, 0], X_c[:, 1], X_c[:, 2]
+        cand = (z > 0.2) & (z < self.max_range) & (x * x + y * y <= self._cone2 * z * z)
+        lim = self.max_range
+        cand &= (np.abs(D[:, 0]) < lim) & (np.abs(D[:, 1]) < lim) & (np.abs(D[:, 2]) < lim)
+        # The cone is round, the image is not: half of what it keeps cannot project into
+        # the image, and projecting (distortion, bounds) is the dearest step per point.
+        x0, x1, y0, y1 = self._frustum
+        cand &= (x >= x0 * z) & (x <= x1 * z) & (y >= y0 * z) & (y <= y1 * z)
+        near, X_c = near[cand], X_c[cand]
         uv, valid = self.cam.project(X_c, min_depth=0.2)
         ids = near[valid]
         X_c, uv = X_c[valid], uv[valid]
@@ -222,21 +244,14 @@ class SimAgent:
         ids, X_c, uv = self.observe(T_w_c)
         desc = self.world.descriptors[ids].copy()
         if self.drift.bit_flip:
-            flips = self.rng.random((len(ids), 256)) < self.drift.bit_flip
-            desc ^= np.packbits(flips, axis=1)
+            desc ^= _bit_flips(self.rng, len(ids), self.drift.bit_flip)
         kf_id = self.next_kf_id
         self.next_kf_id += 1
-        mp_ids = np.empty(len(ids), np.int64)
-        new_idx = []
-        for j, lm in enumerate(ids.tolist()):
-            m = self.lm_to_mp.get(lm)
-            if m is None:
-                m = self.next_mp_id
-                self.next_mp_id += 1
-                self.lm_to_mp[lm] = m
-                new_idx.append(j)
-            mp_ids[j] = m
-        new_idx = np.array(new_idx, dtype=int)
+        mp_ids = self._mp_of_lm[ids]
+        new_idx = np.nonzero(mp_ids < 0)[0]
+        mp_ids[new_idx] = self.next_mp_id + np.arange(len(new_idx))
+        self._mp_of_lm[ids[new_idx]] = mp_ids[new_idx]
+        self.next_mp_id += len(new_idx)
         # New map points sit where this keyframe's (scaled, noisy) depth puts them.
         p_ref = X_c[new_idx] * self.state.scale
         if self.drift.depth_sigma_rel and len(new_idx):
@@ -257,9 +272,9 @@ class SimAgent:
             owners = list(self.recent)
             lms = np.concatenate([v[0] for v in self.recent.values()])
             who = np.repeat(np.arange(len(owners)), [len(v[0]) for v in self.recent.values()])
-            pos = np.searchsorted(ids, lms)
-            hit = pos < len(ids)
-            hit[hit] = ids[pos[hit]] == lms[hit]
+            seen = np.zeros(len(self._mp_of_lm), bool)
+            seen[ids] = True
+            hit = seen[lms]
             w = np.bincount(who[hit], minlength=len(owners))
             best = owners[int(np.argmax(w))] if len(owners) else pred_id
             parent_id = best
@@ -283,6 +298,44 @@ class SimAgent:
             self.recent.popitem(last=False)
         self.last_kf = (kf_id, T_l_c, T_w_c, stamp)
         return SimKeyframe(kf, new_mps, ids)
+
+
+def _bit_flips(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
+    """(n, 32) bytes whose 256 bits each are set with probability ``p``, independently.
+
+    Drawn as the gaps between set bits (geometric), not as a uniform per bit: ~p of
+    the random numbers (30x fewer at p = 0.03), which was a third of a simulated
+    keyframe's cost. Bit k of a row is the MSB-first bit k, as ``np.packbits`` packs."""
+    total = n * 256
+    out = np.zeros(total // 8, np.uint8)
+    if total == 0 or p <= 0:
+        return out.reshape(n, 32)
+    pos = np.empty(0, np.int64)
+    last = -1
+    while last < total:
+        k = int(total * p + 6.0 * np.sqrt(total * p) + 16)
+        step = np.cumsum(rng.geometric(p, size=k)) + last
+        pos = np.concatenate([pos, step])
+        last = int(step[-1])
+    pos = pos[pos < total]
+    # Positions are distinct, so a byte's set bits add up to their OR.
+    out[:] = np.bincount(pos >> 3, weights=1 << (7 - (pos & 7)), minlength=total // 8)
+    return out.reshape(n, 32)
+
+
+def _view_frustum(cam: PinholeRadTan) -> tuple[float, float, float, float]:
+    """Bounds (x0, x1, y0, y1) on x/z and y/z of every ray that projects into the
+    image: the box around the undistorted image border, widened by 5 % of its size on
+    each side (the border is sampled)."""
+    w, h = cam.width - 1, cam.height - 1
+    t = np.linspace(0.0, 1.0, 200)
+    z = np.zeros_like(t)
+    edge = np.concatenate([np.stack([t * w, z], 1), np.stack([t * w, z + h], 1),
+                           np.stack([z, t * h], 1), np.stack([z + w, t * h], 1)])  # fmt: skip
+    u = cam.undistort_points(edge)
+    (x0, y0), (x1, y1) = u.min(axis=0), u.max(axis=0)
+    mx, my = 0.05 * (x1 - x0), 0.05 * (y1 - y0)
+    return float(x0 - mx), float(x1 + mx), float(y0 - my), float(y1 + my)
 
 
 def _view_cone_tan2(cam: PinholeRadTan) -> float:
