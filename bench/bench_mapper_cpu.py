@@ -82,6 +82,11 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
     for k in range(longest):
         order += [(a, f[0][k]) for a, f in flights.items() if k < len(f[0])]
     stage = dict.fromkeys(("ingest", "store", "fuse", "cull", "feedback", "events"), 0.0)
+    # Per group of batches (what a batch queued behind the group waits for), not only
+    # the sums: the mapper's p95 latency is made of these.
+    per_group: dict[str, list[float]] = {k: [] for k in ("ingest", "store", "fuse", "cull",
+                                                         "feedback")}  # fmt: skip
+    t_group = 0.0
     pr_s = 0.0
     matches = 0
     with RedisServer() as url:
@@ -111,11 +116,15 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             group.append((h, batch, time.time_ns(), svc.ingest(h, batch, pre)))
             t1 = clock()
             stage["ingest"] += t1 - t0
+            t_group += t1 - t0
             if len(group) < GROUP_MAX and j + 1 < len(order):
                 continue
             svc.store_and_ack(group)
             t2 = clock()
             stage["store"] += t2 - t1
+            per_group["ingest"].append(t_group)
+            per_group["store"].append(t2 - t1)
+            t_group = 0.0
             agents = [g[0] for g in group]
             if pr is not None:
                 evs = [svc.collab.kf_event(smap.map_id, kg).encode()
@@ -130,9 +139,11 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             svc.fuse(smap)
             t3 = clock()
             stage["fuse"] += t3 - t2
+            per_group["fuse"].append(t3 - t2)
             svc.cull(smap, rng)
             t4 = clock()
             stage["cull"] += t4 - t3
+            per_group["cull"].append(t4 - t3)
             for h in agents:
                 count[h.agent] = count.get(h.agent, 0) + 1
                 if count[h.agent] % FEEDBACK_EVERY == 0:
@@ -142,6 +153,7 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
                     if chunk is not None:
                         chunk.encode()
             stage["feedback"] += clock() - t4
+            per_group["feedback"].append(clock() - t4)
         total = clock() - t_all - pr_s
         if prof:
             prof.disable()
@@ -157,6 +169,15 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             "invariants_ok": inv == [],
             "mapper_cpu_ms_per_kf": 1e3 * total / n_kf,
             "stage_ms_per_kf": {k: round(1e3 * v / n_kf, 3) for k, v in stage.items()},
+            "stage_ms_per_group": {
+                k: {
+                    "p50": round(1e3 * float(np.median(v)), 2),
+                    "p95": round(1e3 * float(np.percentile(v, 95)), 2),
+                    "max": round(1e3 * max(v), 2),
+                }
+                for k, v in per_group.items()
+                if v
+            },
             "placerec_cpu_ms_per_kf": 1e3 * pr_s / n_kf if pr is not None else None,
             "placerec_matches": matches,
         }
