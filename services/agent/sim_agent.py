@@ -308,7 +308,7 @@ def _bit_flips(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
 
     Drawn as the gaps between set bits (geometric), not as a uniform per bit: ~p of
     the random numbers (30x fewer at p = 0.03), which was a third of a simulated
-    keyframe's cost. Bit k of a row is the MSB-first bit k, as ``np.packbits`` packs."""
+    keyframe's cost."""
     total = n * 256
     out = np.zeros(total // 8, np.uint8)
     if total == 0 or p <= 0:
@@ -326,16 +326,21 @@ def _bit_flips(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
     return out.reshape(n, 32)
 
 
-def _view_frustum(cam: PinholeRadTan) -> tuple[float, float, float, float]:
-    """Bounds (x0, x1, y0, y1) on x/z and y/z of every ray that projects into the
-    image: the box around the undistorted image border, widened by 5 % of its size on
-    each side (the border is sampled)."""
+def _image_border(cam: PinholeRadTan) -> np.ndarray:
+    """Undistorted normalized coordinates of 200 samples along each side of the image."""
     w, h = cam.width - 1, cam.height - 1
     t = np.linspace(0.0, 1.0, 200)
     z = np.zeros_like(t)
     edge = np.concatenate([np.stack([t * w, z], 1), np.stack([t * w, z + h], 1),
                            np.stack([z, t * h], 1), np.stack([z + w, t * h], 1)])  # fmt: skip
-    u = cam.undistort_points(edge)
+    return cam.undistort_points(edge)
+
+
+def _view_frustum(cam: PinholeRadTan) -> tuple[float, float, float, float]:
+    """Bounds (x0, x1, y0, y1) on x/z and y/z of every ray that projects into the
+    image: the box around the undistorted image border, widened by 5 % of its size on
+    each side (the border is sampled)."""
+    u = _image_border(cam)
     (x0, y0), (x1, y1) = u.min(axis=0), u.max(axis=0)
     mx, my = 0.05 * (x1 - x0), 0.05 * (y1 - y0)
     return float(x0 - mx), float(x1 + mx), float(y0 - my), float(y1 + my)
@@ -344,10 +349,5 @@ def _view_frustum(cam: PinholeRadTan) -> tuple[float, float, float, float]:
 def _view_cone_tan2(cam: PinholeRadTan) -> float:
     """Squared tangent of a cone around the optical axis that contains every ray that
     projects into the image (10 % margin), for culling before projection."""
-    w, h = cam.width - 1, cam.height - 1
-    t = np.linspace(0.0, 1.0, 200)
-    z = np.zeros_like(t)
-    edge = np.concatenate([np.stack([t * w, z], 1), np.stack([t * w, z + h], 1),
-                           np.stack([z, t * h], 1), np.stack([z + w, t * h], 1)])  # fmt: skip
-    r2 = float((cam.undistort_points(edge) ** 2).sum(axis=1).max())
+    r2 = float((_image_border(cam) ** 2).sum(axis=1).max())
     return min(r2 * 1.21, cam.max_r2)
