@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from shared.camera import PinholeRadTan
-from shared.geometry import relative, rotation_angle, se3_inv
+from shared.geometry import relative, se3_inv
 from shared.messages import MapPoints, NewKeyframe
 from shared.trajectory import SEQUENCES, Trajectory, load_euroc_gt
 
@@ -131,6 +131,7 @@ class SimAgent:
         self.drift = drift or DriftModel()
         self.rng = np.random.default_rng(seed)
         self.kf_dist, self.kf_angle = kf_dist, np.deg2rad(kf_angle_deg)
+        self._kf_cos = float(np.cos(self.kf_angle))
         self.kf_max_dt_ns = int(kf_max_dt * 1e9)
         self.max_features, self.max_range = max_features, max_range
         self.state = SimAgentState()
@@ -195,10 +196,14 @@ class SimAgent:
         if self.last_kf is None:
             return True
         _, _, T_w_last, t_last = self.last_kf
-        T = relative(T_w_last, T_w_c)
+        # Without forming the relative pose (per frame, for every simulated agent): its
+        # translation's length is the distance between the centres, and the cosine of
+        # its angle is (trace(R_last^T R) - 1) / 2 = (sum(R_last * R) - 1) / 2.
+        d = T_w_c[:3, 3] - T_w_last[:3, 3]
+        cos_a = 0.5 * (float(np.sum(T_w_last[:3, :3] * T_w_c[:3, :3])) - 1.0)
         return (
-            np.linalg.norm(T[:3, 3]) > self.kf_dist
-            or rotation_angle(T[:3, :3]) > self.kf_angle
+            float(d @ d) > self.kf_dist * self.kf_dist
+            or cos_a < self._kf_cos
             or stamp - t_last > self.kf_max_dt_ns
         )
 
