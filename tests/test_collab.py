@@ -715,3 +715,55 @@ def test_an_older_requests_correction_does_not_let_settling_overtake_a_newer_req
     assert newer is not None and c.on_correction(CorrectionMsg.decode(newer.encode()))
     _fly_on(svc, sims, gts, "A", "MH01", 1150, 1400)
     assert c.mark_unsettled(time.monotonic()) == [map_id]
+
+
+def test_a_second_global_run_starts_where_the_first_ended(redis_url, world):
+    """A global run distributes the map's loop constraints (pose graph, then BA); once
+    its correction is applied they measure the corrected map, so the next global run
+    (a "continue" of a BA its budget cut short) starts where the first ended instead
+    of being pulled back towards the detection-time measurements. Kept as measured,
+    every settle of team3 at f7923c3 began its BA at the same error (6.93e4, ending
+    at 5.23e4): the map never converged."""
+    settings = Settings(redis_url=redis_url, optimizer=OptimizerSettings(ba_max_iterations=1))
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+
+    def run(reason: str):
+        sent = c.request(map_id, reason)
+        assert isinstance(sent, OptimizeRequest) and len(sent.loops) == 1
+        job = opt.queue.take(block_s=0.1)
+        corr = opt.optimize(opt.decode(job), job)
+        assert c.on_correction(CorrectionMsg.decode(corr.encode())) is True
+        return sent, corr.stats
+
+    first_req, first = run("merge")
+    smap = svc.maps[map_id]
+    (lc,) = c.loops[map_id]
+    # The constraint now measures the corrected map's relative pose...
+    rel = np.linalg.inv(smap.kfs[lc.q].T_m_kf) @ smap.kfs[lc.c].T_m_kf
+    assert np.allclose(lc.S_q_c, rel, atol=1e-9)
+    assert not np.allclose(lc.S_q_c, first_req.S_loop[0], atol=1e-6)
+    assert lc.distributed
+    # A windowed BA between the two global runs: whatever it moved, the next global run
+    # gets the loop at the relative pose of its own copy.
+    nudge = np.eye(4)
+    nudge[:3, :3], nudge[:3, 3] = exp_so3(np.array([0.0, 0.0, 0.002])), [0.0, 0.0, 0.01]
+    smap.kfs[lc.q].T_m_kf = smap.kfs[lc.q].T_m_kf @ nudge
+    rel = np.linalg.inv(smap.kfs[lc.q].T_m_kf) @ smap.kfs[lc.c].T_m_kf
+    second_req, second = run("continue")
+    assert np.allclose(second_req.S_loop[0], rel, atol=1e-9)
+    # ...so the second run has no pose graph to run and its BA goes on from the first's end.
+    assert "pgo_error_initial" not in second, second
+    assert second["ba_error_initial"] <= first["ba_error_final"] * 1.01, (first, second)
+    assert second["ba_error_final"] < first["ba_error_final"]
+    # The rebased constraint is what a restarted mapper loads.
+    again = MapperService(settings)
+    again.load()
+    (lc2,) = again.collab.loops[map_id]
+    assert np.allclose(lc2.S_q_c, c.loops[map_id][0].S_q_c, atol=1e-12)
