@@ -204,7 +204,7 @@ def _two_noisy_agents(svc, world) -> tuple[dict, dict]:
     return gts, sims
 
 
-def _merged_with_optimizer(redis_url, world, optimizer: OptimizerSettings | None = None):
+def _merged_with_optimizer(redis_url, world):
     """A and B (``_two_noisy_agents``) merged by a true match, requests unspaced, and an
     optimizer on the same Redis: (settings, mapper, ground truths, simulated agents,
     the merged map, optimizer).
@@ -212,8 +212,7 @@ def _merged_with_optimizer(redis_url, world, optimizer: OptimizerSettings | None
     Global BA gets a budget it never reaches here (~1-3 s of work): a run stopped on its
     budget asks to continue (``Collaboration._continue``), and that pending request
     would hold back the settle marks these tests check on a slow machine."""
-    optimizer = optimizer or OptimizerSettings(ba_time_budget_s=60.0)
-    settings = Settings(redis_url=redis_url, optimizer=optimizer)
+    settings = Settings(redis_url=redis_url, optimizer=OptimizerSettings(ba_time_budget_s=60.0))
     svc = MapperService(settings)
     c = svc.collab
     c.min_interval = 0.0
@@ -725,10 +724,15 @@ def test_a_second_global_run_starts_where_the_first_ended(redis_url, world):
     of being pulled back towards the detection-time measurements. Kept as measured,
     every settle of team3 at f7923c3 began its BA at the same error (6.93e4, ending
     at 5.23e4): the map never converged."""
-    # One BA iteration per run: the first leaves the map short of its optimum.
-    one = OptimizerSettings(ba_time_budget_s=60.0, ba_max_iterations=1)
-    settings, svc, _, _, map_id, opt = _merged_with_optimizer(redis_url, world, one)
+    settings = Settings(redis_url=redis_url, optimizer=OptimizerSettings(ba_max_iterations=1))
+    svc = MapperService(settings)
     c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    map_id = svc.handlers["A"].map_id
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
 
     def run(reason: str):
         sent = c.request(map_id, reason)
