@@ -79,7 +79,7 @@ import redis
 
 from shared import feedback_dump, keys
 from shared.camera import EUROC_FX
-from shared.geometry import Sim3, se3_inv
+from shared.geometry import Sim3
 from shared.ids import agent_index_of, local_id_of
 from shared.jobs import JobQueue
 from shared.messages import (
@@ -120,7 +120,6 @@ from .metrics import (
     QUEUE_DEPTH,
 )
 from .registry import MapRegistry
-from .server_map import ServerMap
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -228,9 +227,6 @@ class Collaboration:
         # Poses each optimization request was made from, by (map, version): a correction
         # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
-        # Loop constraints each global request carried, by (map, version): once its
-        # correction is applied they are distributed (see ``_rebase_loops``).
-        self._snap_loops: dict[tuple[str, int], set[tuple[int, int]]] = {}
         self._continues: dict[str, int] = {}  # map -> runs asked for to finish a BA
         self.max_continues = 3
         # Settling (see the module's docstring): 0 = only loops and merges optimize.
@@ -585,7 +581,7 @@ class Collaboration:
             for d in (self._dirty, self._inflight, self._continues, self._resume, self.loops):
                 d.pop(map_id, None)
             self._windows.discard(map_id)
-            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops):
+            for d in (self._spacings, self._snap_poses, self._window_keep):
                 for k in [k for k in d if k[0] == map_id]:
                     del d[k]
             OPT_PENDING.set(len(self._dirty))
@@ -643,8 +639,7 @@ class Collaboration:
                     )
                     keep = set(smap.kfs)
                 else:
-                    loops = [(lc.q, lc.c, _at_rest(smap, lc) if lc.distributed else lc.S_q_c)
-                             for lc in self.loops.get(map_id, [])
+                    loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                              if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                     cap = capture_map(smap, loops, covis=False)
             if cap is None:
@@ -679,12 +674,8 @@ class Collaboration:
                 del self._snap_poses[k]  # requests long superseded
             for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
                 del self._window_keep[k]
-            for k in [k for k in self._snap_loops if k[0] == map_id][:-3]:
-                del self._snap_loops[k]
             if local:
                 self._window_keep[(map_id, int(req.version))] = keep
-            else:
-                self._snap_loops[(map_id, int(req.version))] = {(q, c) for q, c, _ in loops}
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
@@ -735,7 +726,6 @@ class Collaboration:
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
             keep = self._window_keep.pop((c.map_id, int(c.base_version)), None)
-            carried = self._snap_loops.pop((c.map_id, int(c.base_version)), set())
         if local and keep is None:
             # A windowed BA whose copy this mapper no longer knows (restarted, or the
             # map taken over): without knowing what it left out, it is not applied.
@@ -774,8 +764,6 @@ class Collaboration:
                     pipe = self.pipeline(c.map_id)
                     for h in reg.handlers_of(c.map_id):
                         persist.write_handler(pipe, h)
-                    if carried and not local:
-                        Store.put_loops(pipe, c.map_id, self._rebase_loops(smap, carried))
                     pipe.execute()
             finally:
                 smap.stop_recording(journal)
@@ -804,30 +792,6 @@ class Collaboration:
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
                  c.stats)  # fmt: skip
         return True
-
-    def _rebase_loops(self, smap: ServerMap, carried: set[tuple[int, int]]) -> list:
-        """The loop constraints an applied global correction carried are distributed:
-        that run's pose graph spread them and its BA went on from there. From now on
-        each is an edge at the map's current relative pose, as the essential graph's
-        other edges are (ORB-SLAM's essential-graph optimization takes earlier loops'
-        edges from the current poses; only a new loop brings its measurement), so a
-        later global run's pose graph is at rest unless a new loop pulls (the
-        optimizer then skips it). Kept at their detection-time Sim(3), every later
-        global run (settle, continue) began with a pose-graph pass that pulled the map
-        back towards the old measurements, undoing most of the previous BA, whose one
-        iteration of its time budget then got part of the way back: team3 at f7923c3
-        started each of its last three global BAs of the settled map at error 6.93e4
-        and ended at 5.23e4, the map never converging. Returns the constraints with
-        their new relative pose (q, c, S_q_c) to store: a restarted mapper loads them
-        as measurements, which hold the map where its last global run left it."""
-        out = []
-        lcs = self.loops.get(smap.map_id, [])
-        for i, lc in enumerate(lcs):
-            if (lc.q, lc.c) not in carried or lc.q not in smap.kfs or lc.c not in smap.kfs:
-                continue
-            lcs[i] = LoopConstraint(lc.q, lc.c, _at_rest(smap, lc), distributed=True)
-            out.append((lc.q, lc.c, lcs[i].S_q_c))
-        return out
 
     def _drop_outliers(self, c: CorrectionMsg, smap, changed_kfs: set[int]) -> None:
         """The observations the optimizer found to be outliers, dropped a slice at a time
@@ -889,8 +853,3 @@ class Collaboration:
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
-
-
-def _at_rest(smap: ServerMap, lc: LoopConstraint) -> np.ndarray:
-    """The relative pose ``T_q^-1 T_c`` of a loop's two keyframes in the map as it is."""
-    return se3_inv(smap.kfs[lc.q].T_m_kf) @ smap.kfs[lc.c].T_m_kf
