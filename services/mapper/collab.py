@@ -79,7 +79,7 @@ import redis
 
 from shared import feedback_dump, keys
 from shared.camera import EUROC_FX
-from shared.geometry import Sim3, rotation_angle, se3_inv
+from shared.geometry import Sim3
 from shared.ids import agent_index_of, local_id_of
 from shared.jobs import JobQueue
 from shared.messages import (
@@ -111,7 +111,6 @@ from .merge import (
 )
 from .metrics import (
     CORRECTIONS,
-    LOOPS_REBASED,
     MAP_POINTS,
     MATCHES,
     MERGES,
@@ -121,7 +120,6 @@ from .metrics import (
     QUEUE_DEPTH,
 )
 from .registry import MapRegistry
-from .server_map import ServerMap
 
 log = logging.getLogger(__name__)
 SERVICE = "mapper"
@@ -229,15 +227,8 @@ class Collaboration:
         # Poses each optimization request was made from, by (map, version): a correction
         # moves keyframes by C = S' T_snap^-1, and the agents refine poses meanwhile.
         self._snap_poses: dict[tuple[str, int], dict[int, np.ndarray]] = {}
-        # Loop constraints each global request carried, by (map, version): once its
-        # correction is applied they are distributed (see ``_rebase_loops``).
-        self._snap_loops: dict[tuple[str, int], set[tuple[int, int]]] = {}
         self._continues: dict[str, int] = {}  # map -> runs asked for to finish a BA
         self.max_continues = 3
-        # A carried loop becomes a rest edge only when the corrected map satisfies it
-        # this closely (``_rebase_loops``).
-        self.loop_rest_rot_deg = 1.0
-        self.loop_rest_trans_share = 0.05
         # Settling (see the module's docstring): 0 = only loops and merges optimize.
         self.settle_kfs = settle_after_kfs
         # Settling by windowed BA (reason "local", see ``request``): 0 = by global runs.
@@ -590,7 +581,7 @@ class Collaboration:
             for d in (self._dirty, self._inflight, self._continues, self._resume, self.loops):
                 d.pop(map_id, None)
             self._windows.discard(map_id)
-            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops):
+            for d in (self._spacings, self._snap_poses, self._window_keep):
                 for k in [k for k in d if k[0] == map_id]:
                     del d[k]
             OPT_PENDING.set(len(self._dirty))
@@ -648,8 +639,7 @@ class Collaboration:
                     )
                     keep = set(smap.kfs)
                 else:
-                    loops = [(lc.q, lc.c, _at_rest(smap, lc) if lc.distributed else lc.S_q_c)
-                             for lc in self.loops.get(map_id, [])
+                    loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                              if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                     cap = capture_map(smap, loops, covis=False)
             if cap is None:
@@ -684,12 +674,8 @@ class Collaboration:
                 del self._snap_poses[k]  # requests long superseded
             for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
                 del self._window_keep[k]
-            for k in [k for k in self._snap_loops if k[0] == map_id][:-3]:
-                del self._snap_loops[k]
             if local:
                 self._window_keep[(map_id, int(req.version))] = keep
-            else:
-                self._snap_loops[(map_id, int(req.version))] = {(q, c) for q, c, _ in loops}
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
@@ -740,7 +726,6 @@ class Collaboration:
         with self._lock:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
             keep = self._window_keep.pop((c.map_id, int(c.base_version)), None)
-            carried = self._snap_loops.pop((c.map_id, int(c.base_version)), set())
         if local and keep is None:
             # A windowed BA whose copy this mapper no longer knows (restarted, or the
             # map taken over): without knowing what it left out, it is not applied.
@@ -779,8 +764,6 @@ class Collaboration:
                     pipe = self.pipeline(c.map_id)
                     for h in reg.handlers_of(c.map_id):
                         persist.write_handler(pipe, h)
-                    if carried and not local:
-                        Store.put_loops(pipe, c.map_id, self._rebase_loops(smap, carried))
                     pipe.execute()
             finally:
                 smap.stop_recording(journal)
@@ -809,45 +792,6 @@ class Collaboration:
                  c.map_id, len(changed_kfs), len(res.kfs_propagated), len(res.mps),
                  c.stats)  # fmt: skip
         return True
-
-    def _rebase_loops(self, smap: ServerMap, carried: set[tuple[int, int]]) -> list:
-        """The loop constraints an applied global correction carried and satisfied are
-        distributed: that run's pose graph spread them and its BA went on from there.
-        From then on each is an edge at the map's current relative pose, as the
-        essential graph's other edges are (ORB-SLAM's essential-graph optimization takes
-        earlier loops' edges from the current poses; only a new loop brings its
-        measurement), so a later global run's pose graph is at rest unless a new loop
-        pulls (the optimizer then skips it). Kept at their detection-time Sim(3), every
-        later global run (settle, continue) began with a pose-graph pass that pulled the
-        map back towards the old measurements, undoing most of the previous BA, whose
-        one iteration of its time budget then got part of the way back: team3 at
-        f7923c3 started each of its last three global BAs of the settled map at error
-        6.93e4 and ended at 5.23e4, the map never converging.
-        A loop the corrected map does not satisfy (its keyframes' relative pose still
-        away from the measurement: the run could not tie them, or keyframes arrived late
-        and were carried along) keeps its measurement, so later runs pull again: making
-        every carried loop a rest edge broke team5 with 1 s delayed messages (9b35735:
-        joint ATE 62 mm, one agent's keyframes 157 mm off). Returns the rebased
-        constraints (q, c, S_q_c) to store: a restarted mapper loads them as
-        measurements, which hold the map where its last global run left it."""
-        out = []
-        lcs = self.loops.get(smap.map_id, [])
-        for i, lc in enumerate(lcs):
-            if (lc.q, lc.c) not in carried or lc.q not in smap.kfs or lc.c not in smap.kfs:
-                continue
-            rest = _at_rest(smap, lc)
-            if not lc.distributed:
-                rot, trans = loop_residual(lc.S_q_c, rest)
-                ok = rot <= self.loop_rest_rot_deg and trans <= self.loop_rest_trans_share
-                LOOPS_REBASED.labels("rebased" if ok else "unsatisfied").inc()
-                log.info("loop %d-%d after the correction: %.2f deg, %.1f %% of its length "
-                         "off its measurement (%s)", lc.q, lc.c, rot, 100 * trans,
-                         "at rest from now" if ok else "kept")  # fmt: skip
-                if not ok:
-                    continue
-            lcs[i] = LoopConstraint(lc.q, lc.c, rest, distributed=True)
-            out.append((lc.q, lc.c, rest))
-        return out
 
     def _drop_outliers(self, c: CorrectionMsg, smap, changed_kfs: set[int]) -> None:
         """The observations the optimizer found to be outliers, dropped a slice at a time
@@ -909,22 +853,3 @@ class Collaboration:
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
-
-
-def loop_residual(S_meas: np.ndarray, T_rest: np.ndarray) -> tuple[float, float]:
-    """How far a loop's keyframes' relative pose ``T_rest`` (SE(3)) is from its measured
-    Sim(3) ``S_meas``: the rotation between them in degrees, and the distance between
-    the translations as a share of the measured one's length (map units carry no
-    metric scale; a floor of 1e-3 keeps a zero-length loop from dividing by zero)."""
-    sR = S_meas[:3, :3]
-    s = float(np.cbrt(np.linalg.det(sR)))
-    R = sR / s if s > 0 else sR
-    rot = float(np.degrees(rotation_angle(R.T @ T_rest[:3, :3])))
-    t_meas = S_meas[:3, 3]
-    trans = float(np.linalg.norm(T_rest[:3, 3] - t_meas) / max(np.linalg.norm(t_meas), 1e-3))
-    return rot, trans
-
-
-def _at_rest(smap: ServerMap, lc: LoopConstraint) -> np.ndarray:
-    """The relative pose ``T_q^-1 T_c`` of a loop's two keyframes in the map as it is."""
-    return se3_inv(smap.kfs[lc.q].T_m_kf) @ smap.kfs[lc.c].T_m_kf

@@ -37,10 +37,6 @@ class LoopConstraint:
     q: int
     c: int
     S_q_c: np.ndarray  # (4, 4) [[sR, t], [0, 1]]
-    # A global run's correction distributed it: from then on it is an edge at the
-    # map's current relative pose, as the essential graph's others (Collaboration
-    # ``_rebase_loops``).
-    distributed: bool = False
 
 
 @dataclass

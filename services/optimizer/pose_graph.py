@@ -89,20 +89,6 @@ def inv_se3_batch(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def loops_pull(snap: OptimizeRequest, tol: float = 1e-9) -> bool:
-    """Whether any loop edge of ``snap`` measures other than its keyframes' current
-    relative pose: if none does, every edge of the pose graph is at rest and the
-    optimization would move nothing (loops a global run distributed come at rest, see
-    the mapper's ``Collaboration._rebase_loops``)."""
-    if not len(snap.loops):
-        return False
-    idx = snap.kf_index()
-    a = np.array([idx[int(q)] for q in snap.loops[:, 0]], np.int64)
-    b = np.array([idx[int(c)] for c in snap.loops[:, 1]], np.int64)
-    rel = inv_se3_batch(snap.T_m_kf[a]) @ snap.T_m_kf[b]
-    return not np.allclose(np.asarray(snap.S_loop, np.float64), rel, rtol=0.0, atol=tol)
-
-
 def correct_points(
     pos: np.ndarray, ref_idx: np.ndarray, T_old: np.ndarray, S_new: np.ndarray
 ) -> np.ndarray:
