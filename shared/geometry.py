@@ -77,6 +77,21 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
+def loop_residual(S_meas: np.ndarray, T_rest: np.ndarray) -> tuple[float, float]:
+    """How far two keyframes' relative pose ``T_rest`` (SE(3)) is from a loop's
+    constraint ``S_meas`` (Sim(3)): the rotation between them in degrees, and the
+    distance between the translations as a share of the constraint's length (map units
+    carry no metric scale; a floor of 1e-3 keeps a zero-length loop from dividing by
+    zero)."""
+    sR = S_meas[:3, :3]
+    s = float(np.cbrt(np.linalg.det(sR)))
+    R = sR / s if s > 0 else sR
+    rot = float(np.degrees(rotation_angle(R.T @ T_rest[:3, :3])))
+    t_meas = S_meas[:3, 3]
+    trans = float(np.linalg.norm(T_rest[:3, 3] - t_meas) / max(np.linalg.norm(t_meas), 1e-3))
+    return rot, trans
+
+
 @dataclass(frozen=True)
 class Sim3:
     """x_a = s * R @ x_b + t  for S_a_b."""

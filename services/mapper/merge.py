@@ -37,6 +37,10 @@ class LoopConstraint:
     q: int
     c: int
     S_q_c: np.ndarray  # (4, 4) [[sR, t], [0, 1]]
+    # A global run's correction distributed it: ``S_q_c`` is then the relative pose its
+    # keyframes had after that correction, no longer the detection-time Sim(3)
+    # (Collaboration ``_rebase_loops``).
+    distributed: bool = False
 
 
 @dataclass

@@ -23,6 +23,13 @@ OPT_REQUESTS = Counter(
 OPT_SKIPPED = Counter(
     "hivemap_optimize_skipped_total", "Optimization requests not sent", ["reason"]
 )
+LOOPS_REBASED = Counter(
+    "hivemap_loops_rebased_total",
+    "Loop constraints after an applied global correction: rebased (satisfied, a rest "
+    "edge from then on), unsatisfied (kept at their measurement) or moved (a rest edge "
+    "the map no longer satisfies, held where it was)",
+    ["outcome"],
+)
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
 # Maps marked for an optimization whose request has not gone out yet: debounced, or held
 # back by the spacing of a big map's requests (collab.Collaboration.due), which at 1000

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from shared.geometry import loop_residual
 from shared.messages import CorrectionMsg, OptimizeRequest
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,26 @@ def inv_se3_batch(T: np.ndarray) -> np.ndarray:
     Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
     Ti[..., 3, 3] = 1.0
     return Ti
+
+
+def loops_pull(snap: OptimizeRequest, rot_deg: float = 0.05, trans_share: float = 0.0025) -> bool:
+    """Whether any loop edge of ``snap`` is away from its keyframes' current relative
+    pose by more than ``rot_deg`` or ``trans_share`` of its length: if none is, the
+    pose graph is (nearly) at rest and would move nothing a BA does not (loops a global
+    run distributed come at rest, see the mapper's ``Collaboration._rebase_loops``,
+    unless a windowed BA or a registration moved their keyframes since)."""
+    if not len(snap.loops):
+        return False
+    idx = snap.kf_index()
+    a = np.array([idx[int(q)] for q in snap.loops[:, 0]], np.int64)
+    b = np.array([idx[int(c)] for c in snap.loops[:, 1]], np.int64)
+    rel = inv_se3_batch(snap.T_m_kf[a]) @ snap.T_m_kf[b]
+    S = np.asarray(snap.S_loop, np.float64)
+    for k in range(len(S)):
+        rot, trans = loop_residual(S[k], rel[k])
+        if rot > rot_deg or trans > trans_share:
+            return True
+    return False
 
 
 def correct_points(

@@ -39,6 +39,7 @@ from shared.transport import Bus, open_session
 
 from .global_ba import GlobalParams, optimize_map
 from .metrics import JOBS, OPTIMIZATIONS, SUPERSEDED
+from .pose_graph import loops_pull
 
 log = logging.getLogger(__name__)
 SERVICE = "optimizer"
@@ -95,8 +96,9 @@ class OptimizerService:
             if self._newer(job):
                 raise Superseded
 
-        # No loop edge: nothing for the pose graph to distribute.
-        params = GlobalParams.from_settings(o, run_pgo=len(req.loops) > 0)
+        # No loop edge that pulls (none, or all distributed by an earlier run): nothing
+        # for the pose graph to distribute.
+        params = GlobalParams.from_settings(o, run_pgo=loops_pull(req))
         if req.reason == "local":
             # A windowed BA (the mapper's capture_window): its own, shorter budget.
             params.ba.time_budget_s = o.local_ba_time_budget_s
