@@ -774,6 +774,33 @@ def test_a_second_global_run_starts_where_the_first_ended(redis_url, world):
     assert np.allclose(lc2.S_q_c, c.loops[map_id][0].S_q_c, atol=1e-12)
 
 
+def test_a_merge_carries_the_moved_maps_loops_in_the_new_units(redis_url, world):
+    """The map a merge moves into the other's frame is scaled (the two agents' VO units
+    differ), and so are the relative poses of its keyframes: its loop constraints must
+    follow, as its culled keyframes' relative poses do (``move_map``). Carried over
+    unscaled, each one pulled its keyframes, at every later global run, towards a
+    length off by the merge's scale (B's is half of A's here)."""
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    gts, sims = _two_noisy_agents(svc, world)
+
+    def rel(smap, q, k):
+        return np.linalg.inv(smap.kfs[q].T_m_kf) @ smap.kfs[k].T_m_kf
+
+    for agent in "AB":
+        smap = svc.maps[svc.handlers[agent].map_id]
+        q, k = sorted(smap.kfs)[5], sorted(smap.kfs)[40]
+        c.loops[smap.map_id] = [LoopConstraint(q, k, rel(smap, q, k), distributed=True)]
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    smap = svc.maps[svc.handlers["A"].map_id]
+    assert svc.handlers["B"].map_id == smap.map_id
+    carried = [lc for lc in c.loops[smap.map_id] if lc.distributed]
+    assert len(carried) == 2
+    for lc in carried:
+        rot, trans = loop_residual(lc.S_q_c, rel(smap, lc.q, lc.c))
+        assert rot < 1e-6 and trans < 1e-9, (lc.q, lc.c, rot, trans)
+
+
 def test_a_loop_the_correction_left_unsatisfied_keeps_its_measurement(redis_url, world):
     """Only a loop the corrected map satisfies becomes a rest edge. One the map is still
     away from (the run could not tie its keyframes, or they arrived late and were
