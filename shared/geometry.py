@@ -77,6 +77,16 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
+def sim3_in_units(S_q_c: np.ndarray, a_q: float, a_c: float) -> np.ndarray:
+    """A place match's Sim(3) ``S_q_c`` (candidate camera -> query camera, ``p_q = s R
+    p_c + t``) after the query's map units were scaled by ``a_q`` and the candidate's by
+    ``a_c`` (a merge moved one of them): ``p_q' = (a_q s / a_c) R p_c' + a_q t``."""
+    out = np.array(S_q_c, np.float64, copy=True)
+    out[:3, :3] *= a_q / a_c
+    out[:3, 3] *= a_q
+    return out
+
+
 def loop_residual(S_meas: np.ndarray, T_rest: np.ndarray) -> tuple[float, float]:
     """How far two keyframes' relative pose ``T_rest`` (SE(3)) is from a loop's
     constraint ``S_meas`` (Sim(3)): the rotation between them in degrees, and the

@@ -51,6 +51,22 @@ def resolve_map(merged_into: dict[str, str], map_id: str) -> str:
     return map_id
 
 
+def resolve_map_scale(
+    merged_into: dict[str, str], scale_of: dict[str, float], map_id: str
+) -> tuple[str, float | None]:
+    """:func:`resolve_map`, and the factor ``map_id``'s units were scaled by on the way
+    there (the product of each merge's scale ``scale_of[map]``; None when one of them
+    is not known)."""
+    seen = set()
+    s: float | None = 1.0
+    while map_id in merged_into and map_id not in seen:
+        seen.add(map_id)
+        f = scale_of.get(map_id)
+        s = None if s is None or f is None else s * f
+        map_id = merged_into[map_id]
+    return map_id, s
+
+
 # Sets of ids as sorted int64 arrays. numpy's unique / isin / setdiff1d hash or merge-sort
 # their inputs on every call (~0.5 ms each for a few thousand ids); the mapper does this
 # for every keyframe's fusion and feedback chunk, where one sort and binary searches do.

@@ -16,6 +16,7 @@ from services.mapper.server_map import ServerKeyframe, ServerMap, ServerMapPoint
 from services.mapper.service import MapperService
 from services.optimizer.pose_graph import loops_pull
 from services.optimizer.service import OptimizerService, Superseded
+from shared import keys
 from shared.geometry import Sim3, exp_so3, loop_residual, se3_inv
 from shared.ids import gid, local_id_of
 from shared.messages import CorrectionMsg, Match, OptimizeRequest
@@ -169,6 +170,44 @@ def test_match_between_two_agents_merges_their_maps_into_one_frame(redis_url, wo
     # with a new fencing token and the first one's writes are refused (``Fenced``).
     _fly_on(again, sims, gts, "B", "MH02", 700, 900)
     assert _joint_rigid_error(again, gts, "AB") < 1e-6
+
+
+def test_a_match_verified_before_a_merge_is_taken_in_the_merged_units(redis_url, world):
+    """Place recognition verified a match between A's and B's maps, and the mapper
+    merged them through another match before this one arrived: it now names a pair in
+    one map, whose units are not B's any more (B's map was scaled by 2 or 1/2 into
+    A's). Taken as it came it was a loop carrying the merge's scale."""
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    gts, sims = {}, {}
+    for agent, seq, scale in (("A", "MH01", 1.0), ("B", "MH02", 2.0)):
+        gt = load_euroc_gt(seq)
+        gts[agent] = Trajectory(gt.stamps_ns[0:700], gt.poses[0:700])
+        sims[agent] = SimAgent(gts[agent], world, drift=DriftModel.zero())
+        sims[agent].state.scale = scale
+        _feed(svc, agent, sims[agent])
+    late = _match_from_truth(svc, sims, gts, "B", "A")  # verified now, applied later
+    assert (late.query_map, late.cand_map) == (svc.handlers["B"].map_id,
+                                               svc.handlers["A"].map_id)  # fmt: skip
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    smap = svc.handlers["A"].smap
+    assert svc.handlers["B"].smap is smap
+    # The pair's Sim(3) in the merged map's units: the zero-drift map's own relative pose.
+    now = c._in_current_units(late, smap.map_id, smap.map_id)
+    assert now is not None and now.query_map == now.cand_map == smap.map_id
+    rel = se3_inv(smap.kfs[late.query_gid].T_m_kf) @ smap.kfs[late.cand_gid].T_m_kf
+    S = Sim3.from_matrix(now.S_q_c)
+    assert abs(S.s - 1.0) < 1e-6, S.s
+    rot, trans = loop_residual(now.S_q_c, rel)
+    assert rot < 1e-6 and trans < 1e-6, (rot, trans)
+    # Where the merge's scale is not known (merged before a restart), it is dropped.
+    from shared.metrics import REJECTED
+
+    stale = REJECTED.labels("mapper", keys.MATCH, "stale_units")
+    before = stale._value.get()
+    svc.registry.merge_scale.clear()
+    assert c.on_match(late) is None
+    assert stale._value.get() == before + 1
 
 
 def test_a_dropped_maps_agents_leave_no_settle_state_behind(redis_url):

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from shared.camera import CalibrationError, PinholeRadTan
-from shared.geometry import Sim3, exp_so3, se3, se3_inv, transform_points, umeyama
+from shared.geometry import (
+    Sim3,
+    exp_so3,
+    se3,
+    se3_inv,
+    sim3_in_units,
+    transform_points,
+    umeyama,
+)
 from shared.keys import ALL_AGENT_KF, agent_kf, check_id
 from shared.trajectory import Trajectory, ate, format_tum, load_euroc_gt, parse_tum
 
@@ -116,3 +124,16 @@ def test_key_expressions():
     for bad in ["", "a/b", "a*", "x" * 65, "a b"]:
         with pytest.raises(ValueError):
             check_id(bad)
+
+
+def test_a_matchs_sim3_follows_its_maps_units():
+    """Points of the candidate's camera in units scaled by a_c, of the query's by a_q:
+    the converted Sim(3) maps the one onto the other as the original did before."""
+    rng = np.random.default_rng(3)
+    S = Sim3(exp_so3(np.array([0.2, -0.1, 0.3])), np.array([0.5, -1.0, 2.0]), 1.7)
+    p_c = rng.normal(size=(20, 3))
+    p_q = S.apply(p_c)
+    a_q, a_c = 0.8, 2.5
+    S2 = sim3_in_units(S.matrix(), a_q, a_c)
+    got = (S2[:3, :3] @ (a_c * p_c).T).T + S2[:3, 3]
+    np.testing.assert_allclose(got, a_q * p_q, atol=1e-12)

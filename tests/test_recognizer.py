@@ -150,4 +150,9 @@ def test_a_loop_that_disagrees_with_the_map_by_degrees_is_rejected(voc, drift_de
         T_q_c = se3_inv(T_q) @ cand[m.cand_gid]
         S = Sim3.from_matrix(m.S_q_c)
         assert np.rad2deg(rotation_angle(S.R.T @ T_q_c[:3, :3])) < 0.5
-        assert abs(S.s - k) < 0.05 * k
+        # In map A's units, as the match names map A for both: verified against the
+        # candidate's points in B's units it had the merge's scale k (a loop within one
+        # map at scale 2 for the pose graph to spread) and a translation off by k.
+        assert m.query_map == m.cand_map == "A"
+        assert abs(S.s - 1.0) < 0.05, S.s
+        assert np.linalg.norm(S.t - T_q_c[:3, 3]) < 0.05 * np.linalg.norm(T_q_c[:3, 3])

@@ -68,6 +68,7 @@ Holds over 200 ms are logged and histogrammed (``locks.MapLock``).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
@@ -79,7 +80,7 @@ import redis
 
 from shared import feedback_dump, keys
 from shared.camera import EUROC_FX
-from shared.geometry import Sim3, loop_residual, se3_inv
+from shared.geometry import Sim3, loop_residual, se3_inv, sim3_in_units
 from shared.ids import agent_index_of, local_id_of
 from shared.jobs import JobQueue
 from shared.messages import (
@@ -326,9 +327,34 @@ class Collaboration:
             REJECTED.labels(SERVICE, keys.MATCH, "unknown_kf").inc()
             log.warning("match names a keyframe no map holds: %d / %d", m.query_gid, m.cand_gid)
             return None
+        if (m.query_map, m.cand_map) != (qm, cm):
+            m = self._in_current_units(m, qm, cm)
+            if m is None:
+                return None
         if qm == cm:
             return self._loop(qm, m)
         return self._merge(qm, cm, m)
+
+    def _in_current_units(self, m: Match, qm: str, cm: str) -> Match | None:
+        """A match place recognition verified against maps merged since (the merge
+        came first on this side): its Sim(3) in the units of the maps its keyframes are
+        in now. Taken as it came, a match between two maps merged meanwhile became a
+        loop within one map carrying their merge's scale, for the pose graph to spread.
+        None (rejected, counted) when the maps it names do not lead to these or a
+        merge's scale on the way is not known (merged before this mapper started)."""
+        rq, a_q = self.reg.resolve_scale(m.query_map)
+        rc, a_c = self.reg.resolve_scale(m.cand_map)
+        if (rq, rc) != (qm, cm) or a_q is None or a_c is None:
+            REJECTED.labels(SERVICE, keys.MATCH, "stale_units").inc()
+            log.warning("match %d / %d was verified in maps %s / %s, now %s / %s, with no "
+                        "known way between their units; dropped", m.query_gid, m.cand_gid,
+                        m.query_map, m.cand_map, qm, cm)  # fmt: skip
+            return None
+        log.info("match %d / %d verified in maps %s / %s, now %s / %s: units scaled by "
+                 "%.4f / %.4f", m.query_gid, m.cand_gid, m.query_map, m.cand_map, qm, cm,
+                 a_q, a_c)  # fmt: skip
+        return dataclasses.replace(m, query_map=qm, cand_map=cm,
+                                   S_q_c=sim3_in_units(m.S_q_c, a_q, a_c))  # fmt: skip
 
     def _loop(self, map_id: str, m: Match) -> str | None:
         with self.reg.lock(map_id):

@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
 from shared.geometry import Sim3
-from shared.ids import resolve_map
+from shared.ids import resolve_map, resolve_map_scale
 
 from .registration import AgentHandler
 from .server_map import ServerMap
@@ -89,6 +89,8 @@ class MapRegistry:
         self._by_map: dict[str, set[str]] = {}  # map id -> agents registering into it
         self.actors: dict[str, MapActor] = {}
         self.merged_into: dict[str, str] = {}
+        # map -> the scale its merge applied (unknown for merges before a restart)
+        self.merge_scale: dict[str, float] = {}
         self.aliases: dict[int, int] = {}  # fused point gid -> surviving gid (every handler's)
         self.names: dict[int, str] = {}  # agent index -> agent id
         self._lock = threading.Lock()
@@ -97,6 +99,11 @@ class MapRegistry:
     def resolve(self, map_id: str) -> str:
         """The map ``map_id`` lives on as, following merges."""
         return resolve_map(self.merged_into, map_id)
+
+    def resolve_scale(self, map_id: str) -> tuple[str, float | None]:
+        """:meth:`resolve`, and the factor ``map_id``'s units were scaled by on the way
+        (None when a merge's scale is not known here)."""
+        return resolve_map_scale(self.merged_into, self.merge_scale, map_id)
 
     def is_local(self, map_id: str) -> bool:
         return map_id in self.maps
@@ -217,6 +224,7 @@ class MapRegistry:
             h.smap = tmap
             h.S_m_l = S_t_s @ h.S_m_l
         self.merged_into[source] = target
+        self.merge_scale[source] = float(S_t_s.s)
         a = self.actors.get(source)
         if a is not None:
             a.retired_into = target

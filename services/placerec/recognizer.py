@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.geometry import rotation_angle, se3_inv
-from shared.ids import resolve_map
+from shared.geometry import rotation_angle, se3_inv, sim3_in_units
+from shared.ids import resolve_map, resolve_map_scale
 from shared.messages import KeyframeEvent, Match
 from shared.settings import PlacerecSettings, default_of
 
@@ -113,6 +113,7 @@ class PlaceRecognizer:
         self.merged_into: dict[str, str] = {}
         # map -> (the map it merged into, the Sim(3) that carried its frame there)
         self.merge_S: dict[str, tuple[str, np.ndarray]] = {}
+        self.merge_scale: dict[str, float] = {}  # map -> its merge's scale
         self.last = QueryTiming()
 
     # --- bookkeeping -------------------------------------------------------------------
@@ -126,6 +127,9 @@ class PlaceRecognizer:
         self.merged_into[source] = target
         if S_t_s is not None:
             self.merge_S[source] = (target, np.asarray(S_t_s, np.float64))
+            self.merge_scale[source] = float(
+                np.cbrt(np.linalg.det(self.merge_S[source][1][:3, :3]))
+            )
         n = self.db.relabel_map(source, self.resolve(target))
         for k in self.kfs.values():
             if k.data.map_id == source:
@@ -243,9 +247,14 @@ class PlaceRecognizer:
                              "query and %d of %d of the candidate; rejected", c, g, views[1],
                              views[0], views[3], views[2])  # fmt: skip
                     continue
+                S_q_c = self.in_current_units(res.S_q_c, ev.map_id, self.kfs[c].frame)
+                if S_q_c is None:
+                    log.info("candidate %d for %d: a merge since they were registered has "
+                             "no known scale; skipped", c, g)  # fmt: skip
+                    continue
                 both = (res.mp_q >= 0) & (res.mp_c >= 0)
                 out.append(Match(
-                    map_id, g, self.kfs[c].data.map_id, c, res.S_q_c, res.mp_q[both].copy(),
+                    map_id, g, self.kfs[c].data.map_id, c, S_q_c, res.mp_q[both].copy(),
                     res.mp_c[both].copy(), int(res.n_inliers),
                     float(self.db_score(kd, c)), time.time_ns(),
                 ))  # fmt: skip
@@ -259,6 +268,23 @@ class PlaceRecognizer:
         timing.verify_s = time.perf_counter() - t1
         self.last = timing
         return out
+
+    def in_current_units(self, S_q_c: np.ndarray, q_frame: str, c_frame: str) -> np.ndarray | None:
+        """A verified Sim(3) between points registered in the frames ``q_frame`` and
+        ``c_frame`` (the maps their keyframe events were sent for), in the units of the
+        maps those live on as now (the maps a Match names); None when a merge's scale on
+        the way is unknown.
+
+        A candidate registered before its map merged into the query's has its points
+        in the old map's units: its "loop" would carry the merge's scale, which the
+        mapper's pose graph would spread over the map."""
+        _, a_q = resolve_map_scale(self.merged_into, self.merge_scale, q_frame)
+        _, a_c = resolve_map_scale(self.merged_into, self.merge_scale, c_frame)
+        if a_q is None or a_c is None:
+            return None
+        if a_q == 1.0 and a_c == 1.0:
+            return S_q_c
+        return sim3_in_units(S_q_c, a_q, a_c)
 
     def pose_in_map(self, g: int) -> np.ndarray | None:
         """Keyframe g's registered pose carried through the merges since into its
