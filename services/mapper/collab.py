@@ -434,10 +434,11 @@ class Collaboration:
             tk = target.kfs
             S_q_c = relative_sim3(tk[m.query_gid].T_m_kf, tk[m.cand_gid].T_m_kf)
             lc = LoopConstraint(m.query_gid, m.cand_gid, S_q_c)
-            # The source's own loops measure relative poses in its units: scaled with it
-            # (rotations and the loops' own scale do not change), as move_map does
-            # the culled keyframes' relative poses.
-            old = [LoopConstraint(o.q, o.c, _scaled_translation(o.S_q_c, S_t_s.s), o.distributed)
+            # The source's own loops measure relative poses in its units: both their
+            # keyframes scaled by the merge's scale, as move_map does the culled
+            # keyframes' relative poses.
+            s = S_t_s.s
+            old = [LoopConstraint(o.q, o.c, sim3_in_units(o.S_q_c, s, s), o.distributed)
                    for o in self.loops.pop(source.map_id, [])]  # fmt: skip
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
             self._persist_merge(target.map_id, source.map_id, moved.moved_kfs, moved.moved_mps)
@@ -949,12 +950,6 @@ class Collaboration:
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
-
-
-def _scaled_translation(S: np.ndarray, s: float) -> np.ndarray:
-    out = np.array(S, np.float64, copy=True)
-    out[:3, 3] *= s
-    return out
 
 
 def _at_rest(smap: ServerMap, lc: LoopConstraint) -> np.ndarray:

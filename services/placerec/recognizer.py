@@ -113,7 +113,6 @@ class PlaceRecognizer:
         self.merged_into: dict[str, str] = {}
         # map -> (the map it merged into, the Sim(3) that carried its frame there)
         self.merge_S: dict[str, tuple[str, np.ndarray]] = {}
-        self.merge_scale: dict[str, float] = {}  # map -> its merge's scale
         self.last = QueryTiming()
 
     # --- bookkeeping -------------------------------------------------------------------
@@ -127,9 +126,6 @@ class PlaceRecognizer:
         self.merged_into[source] = target
         if S_t_s is not None:
             self.merge_S[source] = (target, np.asarray(S_t_s, np.float64))
-            self.merge_scale[source] = float(
-                np.cbrt(np.linalg.det(self.merge_S[source][1][:3, :3]))
-            )
         n = self.db.relabel_map(source, self.resolve(target))
         for k in self.kfs.values():
             if k.data.map_id == source:
@@ -278,8 +274,9 @@ class PlaceRecognizer:
         A candidate registered before its map merged into the query's has its points
         in the old map's units: its "loop" would carry the merge's scale, which the
         mapper's pose graph would spread over the map."""
-        _, a_q = resolve_map_scale(self.merged_into, self.merge_scale, q_frame)
-        _, a_c = resolve_map_scale(self.merged_into, self.merge_scale, c_frame)
+        scale = {m: float(np.cbrt(np.linalg.det(S[:3, :3]))) for m, (_, S) in self.merge_S.items()}
+        _, a_q = resolve_map_scale(self.merged_into, scale, q_frame)
+        _, a_c = resolve_map_scale(self.merged_into, scale, c_frame)
         if a_q is None or a_c is None:
             return None
         if a_q == 1.0 and a_c == 1.0:
