@@ -42,7 +42,10 @@ matrices little-endian float64 row-major):
     hm:maps                  SET   live map ids (a merged map leaves it)
     hm:map:{m}               HASH  created_ns, agents (comma separated), merged_into (set
                                    when the map was fused into that map, CCM-SLAM §4.8:
-                                   it holds nothing then)
+                                   it holds nothing then), merge_scale (repr float: the
+                                   scale that merge applied to its units; absent in
+                                   stores written before 2026-11-29)
+    hm:retired               SET   map ids that were merged into another map
     hm:map:{m}:kfs           SET   "a:id" of its keyframes
     hm:map:{m}:loops         HASH  "q:c" (keyframe gids) -> S_q_c (16 f8): a loop
                                    constraint, the Sim(3) mapping keyframe c's camera
@@ -104,6 +107,7 @@ _P = "hm"
 POSE_CHANNEL = f"{_P}:poses"
 _AGENTS, _MAPS, _ALIAS = f"{_P}:agents", f"{_P}:maps", f"{_P}:alias"
 _AGENT_INDEX, _AGENT_INDEX_NEXT = f"{_P}:agent_index", f"{_P}:agent_index_next"
+_RETIRED = f"{_P}:retired"
 
 MP_DTYPE = np.dtype([("pos", "<f8", (3,)), ("ref_g", "<i8"), ("desc", "u1", (32,))])
 
@@ -417,10 +421,15 @@ class Store:
             pipe.hset(_k("map", map_id, "loops"), f"{q}:{c}", _b8(S))
 
     @staticmethod
-    def retire_map(pipe, source: str, target: str) -> None:
-        """``source`` was fused into ``target`` (whose writes carry its keyframes)."""
-        pipe.hset(_k("map", source), mapping={"merged_into": target, "agents": ""})
+    def retire_map(pipe, source: str, target: str, scale: float | None = None) -> None:
+        """``source`` was fused into ``target`` (whose writes carry its keyframes), its
+        units scaled by ``scale``."""
+        fields = {"merged_into": target, "agents": ""}
+        if scale is not None:
+            fields["merge_scale"] = repr(float(scale))
+        pipe.hset(_k("map", source), mapping=fields)
         pipe.srem(_MAPS, source)
+        pipe.sadd(_RETIRED, source)
         pipe.delete(_k("map", source, "kfs"), _k("map", source, "loops"))
 
     def put_pose(self, pose: LivePose) -> None:
@@ -564,6 +573,19 @@ class Store:
 
     def maps(self) -> list[str]:
         return sorted(m.decode() for m in self.r.smembers(_MAPS))
+
+    def merges(self) -> dict[str, tuple[str, float | None]]:
+        """Every merge stored: retired map -> (the map it was merged into, the scale
+        applied to its units, None when stored before scales were)."""
+        ids = sorted(m.decode() for m in self.r.smembers(_RETIRED))
+        pipe = self.r.pipeline(transaction=False)
+        for m in ids:
+            pipe.hmget(_k("map", m), "merged_into", "merge_scale")
+        out = {}
+        for m, (into, scale) in zip(ids, pipe.execute(), strict=True):
+            if into is not None:
+                out[m] = (into.decode(), None if scale is None else float(scale))
+        return out
 
     def map_info(self, map_id: str) -> dict | None:
         h = self.r.hgetall(_k("map", map_id))

@@ -200,7 +200,13 @@ def test_a_match_verified_before_a_merge_is_taken_in_the_merged_units(redis_url,
     assert abs(S.s - 1.0) < 1e-6, S.s
     rot, trans = loop_residual(now.S_q_c, rel)
     assert rot < 1e-6 and trans < 1e-6, (rot, trans)
-    # Where the merge's scale is not known (merged before a restart), it is dropped.
+    # A mapper restarted on the same store knows the merge's scale too.
+    again = MapperService(Settings(redis_url=redis_url))
+    again.load()
+    assert again.registry.merge_scale == svc.registry.merge_scale
+    now2 = again.collab._in_current_units(late, smap.map_id, smap.map_id)
+    assert now2 is not None and np.allclose(now2.S_q_c, now.S_q_c, atol=1e-9)
+    # Where the merge's scale is not known (stored before scales were), it is dropped.
     from shared.metrics import REJECTED
 
     stale = REJECTED.labels("mapper", keys.MATCH, "stale_units")

@@ -441,7 +441,7 @@ class Collaboration:
             old = [LoopConstraint(o.q, o.c, sim3_in_units(o.S_q_c, s, s), o.distributed)
                    for o in self.loops.pop(source.map_id, [])]  # fmt: skip
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
-            self._persist_merge(target.map_id, source.map_id, moved.moved_kfs, moved.moved_mps)
+            self._persist_merge(target.map_id, source.map_id, s, moved.moved_kfs, moved.moved_mps)
             self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
         MATCHES.labels("merge").inc()
         MERGES.inc()
@@ -475,7 +475,8 @@ class Collaboration:
         Store.put_loops(pipe, map_id, [(lc.q, lc.c, lc.S_q_c) for lc in loops])
         pipe.execute()
 
-    def _persist_merge(self, target: str, source: str, kfs: list[int], mps: list[int]) -> None:
+    def _persist_merge(self, target: str, source: str, scale: float, kfs: list[int],
+                       mps: list[int]) -> None:  # fmt: skip
         smap = self.reg.maps[target]
         pipe = self.pipeline(target, source)
         for g in kfs:
@@ -491,7 +492,7 @@ class Collaboration:
                 if entry is not None:
                     h.removed[kid] = entry
                     Store.put_removed(pipe, h.agent, kid, *entry)
-        Store.retire_map(pipe, source, target)
+        Store.retire_map(pipe, source, target, scale)
         pipe.execute()
 
     # --- optimization ------------------------------------------------------------------

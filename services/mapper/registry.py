@@ -89,7 +89,8 @@ class MapRegistry:
         self._by_map: dict[str, set[str]] = {}  # map id -> agents registering into it
         self.actors: dict[str, MapActor] = {}
         self.merged_into: dict[str, str] = {}
-        # map -> the scale its merge applied (unknown for merges before a restart)
+        # map -> the scale its merge applied (from the store after a restart; unknown
+        # for merges stored before scales were)
         self.merge_scale: dict[str, float] = {}
         self.aliases: dict[int, int] = {}  # fused point gid -> surviving gid (every handler's)
         self.names: dict[int, str] = {}  # agent index -> agent id
@@ -145,10 +146,17 @@ class MapRegistry:
         return len(self._by_map.get(map_id, ()))
 
     def load(self, maps: dict[str, ServerMap], handlers: dict[str, AgentHandler],
-             names: dict[int, str]) -> None:  # fmt: skip
-        """State rebuilt from the store (before any actor runs)."""
+             names: dict[int, str],
+             merges: dict[str, tuple[str, float | None]] | None = None) -> None:  # fmt: skip
+        """State rebuilt from the store (before any actor runs); ``merges``: retired map
+        -> (the map it went into, its merge's scale), as ``Store.merges`` reads them,
+        so a match verified before a merge still finds its maps' units."""
         self.maps.update(maps)
         self.names.update(names)
+        for source, (target, scale) in (merges or {}).items():
+            self.merged_into.setdefault(source, target)
+            if scale is not None:
+                self.merge_scale.setdefault(source, scale)
         for h in handlers.values():
             self.aliases.update(h.aliases)
         for h in handlers.values():

@@ -408,7 +408,7 @@ class MapperService:
         self._heartbeat()
         mine = {m for m in self.store.maps() if self._may_own(m)}
         maps, handlers = persist.load_all(self.store, self.params, only=mine)
-        self.registry.load(maps, handlers, self.store.agent_names())
+        self.registry.load(maps, handlers, self.store.agent_names(), self.store.merges())
         self.collab.load(set(maps))
         for h in handlers.values():
             log.info("resumed agent %s: map %s, %d keyframes", h.agent, h.map_id,
@@ -856,7 +856,7 @@ class MapperService:
             self.own.leases.release(map_id)  # merged away or empty meanwhile
             return False
         with self._lock:
-            self.registry.load(maps, handlers, self.store.agent_names())
+            self.registry.load(maps, handlers, self.store.agent_names(), self.store.merges())
             self.collab.load({map_id})
         if self.session is not None:
             self.registry.actor(map_id)
