@@ -38,6 +38,21 @@ def test_correction_within_drift_is_taken_and_paid_out_without_a_jump():
     assert rp.offset < 1e-9
 
 
+def test_an_offset_is_paid_out_at_a_capped_rate_in_fast_flight():
+    """A fast camera (a fifth of its step is more than an offset) still gets the offset
+    over several frames, never more than ``step_cap`` in one."""
+    rp = ReportedPose()
+    poses = _walk(300, step=0.08)
+    rep = [rp.update(T, "ok") for T in poses[:200]]
+    assert rp.offer(_shift([0.0, 0.01, 0.0]))
+    rep += [rp.update(T, "ok") for T in poses[200:]]
+    off = [R[:3, 3] - T[:3, 3] for R, T in zip(rep, poses, strict=True)]
+    extra = np.linalg.norm(np.diff(off, axis=0), axis=1)
+    assert extra.max() <= rp.p.step_cap + 1e-9
+    assert (extra > 1e-6).sum() >= 3  # 0.01 over at least four frames, not in one
+    assert rp.offset < 1e-9
+
+
 def test_gate_rejects_a_correction_that_contradicts_the_vo():
     rp = ReportedPose()
     poses = _walk(100)
