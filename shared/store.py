@@ -421,13 +421,11 @@ class Store:
             pipe.hset(_k("map", map_id, "loops"), f"{q}:{c}", _b8(S))
 
     @staticmethod
-    def retire_map(pipe, source: str, target: str, scale: float | None = None) -> None:
+    def retire_map(pipe, source: str, target: str, scale: float) -> None:
         """``source`` was fused into ``target`` (whose writes carry its keyframes), its
         units scaled by ``scale``."""
-        fields = {"merged_into": target, "agents": ""}
-        if scale is not None:
-            fields["merge_scale"] = repr(float(scale))
-        pipe.hset(_k("map", source), mapping=fields)
+        pipe.hset(_k("map", source), mapping={"merged_into": target, "agents": "",
+                                              "merge_scale": repr(float(scale))})  # fmt: skip
         pipe.srem(_MAPS, source)
         pipe.sadd(_RETIRED, source)
         pipe.delete(_k("map", source, "kfs"), _k("map", source, "loops"))

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.geometry import rotation_angle, se3_inv, sim3_in_units
+from shared.geometry import Sim3, rotation_angle, se3_inv, sim3_in_units
 from shared.ids import resolve_map, resolve_map_scale
 from shared.messages import KeyframeEvent, Match
 from shared.settings import PlacerecSettings, default_of
@@ -274,7 +274,7 @@ class PlaceRecognizer:
         A candidate registered before its map merged into the query's has its points
         in the old map's units: its "loop" would carry the merge's scale, which the
         mapper's pose graph would spread over the map."""
-        scale = {m: float(np.cbrt(np.linalg.det(S[:3, :3]))) for m, (_, S) in self.merge_S.items()}
+        scale = {m: Sim3.from_matrix(S).s for m, (_, S) in self.merge_S.items()}
         _, a_q = resolve_map_scale(self.merged_into, scale, q_frame)
         _, a_c = resolve_map_scale(self.merged_into, scale, c_frame)
         if a_q is None or a_c is None:
