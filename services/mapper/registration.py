@@ -9,7 +9,8 @@ is not on the server. Relative translations are in the agent's local-map units, 
 they are scaled by the handler's Sim(3) scale ``S_m_l.s`` and by the VO scale
 correction ``lam`` (CSfM eq. 2-4). The chained pose is then refined against the map
 points the keyframe observes; the ratio of refined to odometry translation updates
-``lam`` with smoothing ``kappa``.
+``lam`` with smoothing ``kappa``, weighted by the step's length (a short step's ratio
+is mostly the refined pose's own error).
 
 Only points that carry what the agent's VO does not know refine a keyframe
 (``refine_settled_only``): points anchored in keyframes an optimization settled, or in
@@ -63,6 +64,7 @@ from .pose_refine import refine_pose
 from .server_map import NO_MP, ServerKeyframe, ServerMap, ServerMapPoint
 
 EARLY_UPDATES_MAX = 4096  # keyframe updates kept waiting for their keyframe, per agent
+SCALE_STEP_FULL = 0.3  # map units of step from which a refinement's scale ratio weighs fully
 _ref_kf = attrgetter("ref_kf")
 
 
@@ -465,7 +467,17 @@ class AgentHandler:
                     and t_hat * self.lam > self.params.min_scale_baseline
                 ):
                     lam_hat = np.linalg.norm((se3_inv(T_pred) @ T)[:3, 3]) / t_hat
-                    self.lam += self._kappa(kf) * (lam_hat - self.lam)
+                    # The ratio is off by the refined pose's error over the step: 1-2 cm
+                    # over the 0.03-0.07 units (20-45 cm) of a seed-1 pair run's steps
+                    # (p1x_b0a0b9f, bench/registration_errors.py) read as 4-6 % scale
+                    # errors, and two of them set lam to 0.988 and then 1.006 within 4 s
+                    # (the VO was within 0.3 % of the map's scale); the next 50 s of
+                    # keyframes were chained 0.6 % long, windowed BAs settled them so,
+                    # and the agent's reported pose followed (20-27 mm off where its VO
+                    # was 5-8 mm). So a step weighs in proportion to its length, in full
+                    # from SCALE_STEP_FULL.
+                    w = min(1.0, t_hat * self.lam / SCALE_STEP_FULL)
+                    self.lam += w * self._kappa(kf) * (lam_hat - self.lam)
         if feedback_dump.enabled():
             feedback_dump.record(
                 "mapper", "reg", agent=self.agent, kf=kf.id, stamp_ns=kf.stamp_ns,
