@@ -70,6 +70,14 @@ REGISTRATION = Counter(
     "Out-of-order arrivals handled by registration",
     ["what"],
 )
+# Pose refinements registration accepted, and those it refused because they moved the
+# keyframe further than the VO's chain since the newest trusted keyframe allows.
+REFINEMENTS = Counter(
+    "hivemap_pose_refinements_total",
+    "Keyframe pose refinements against settled points: accepted, or gated (they moved "
+    "the keyframe further than its VO chain allows)",
+    ["result"],
+)
 OVERLOAD_LEVEL = Gauge(
     "hivemap_mapper_overload_level",
     "What the mapper sheds now: 0 nothing, 1 live poses, 2 + feedback rate, "
@@ -87,4 +95,5 @@ SHED = Counter(
 at_zero(MATCHES, ("merge", "loop", "loop_redundant"))
 at_zero(OPT_REQUESTS, OptimizeRequest.REASONS)
 at_zero(REGISTRATION, ("duplicate", "stale", "early", "orphan", "rechained"))
+at_zero(REFINEMENTS, ("accepted", "gated"))
 at_zero(SHED, ("pose", "feedback", "placerec", "optimize", "keyframe_batch"))

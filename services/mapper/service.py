@@ -76,6 +76,7 @@ from .metrics import (
     MAPS_OWNED,
     OVERLOAD_LEVEL,
     QUEUE_DEPTH,
+    REFINEMENTS,
     REGISTRATION,
     SHED,
     TAKEOVERS,
@@ -558,6 +559,9 @@ class MapperService:
                             ("rechained", res.rechained)):  # fmt: skip
                 if n:
                     REGISTRATION.labels(what).inc(n)
+            for what, n in (("accepted", res.refined), ("gated", res.refine_gated)):
+                if n:
+                    REFINEMENTS.labels(what).inc(n)
             STORED.labels(SERVICE, "keyframe").inc(len(res.new_kfs))
             STORED.labels(SERVICE, "map_point").inc(len(res.new_mps))
             PROCESSING.labels(SERVICE, "kf_batch").observe(ing.seconds + t_store)
