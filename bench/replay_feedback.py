@@ -19,6 +19,10 @@ as on the server; agents record every chunk's arrival, with a correction or with
 in dumps older than the correction history only the chunks that carried one).
 The agent's reported pose does not feed back into the map (it publishes its VO pose),
 so a replay is what a live run with the same map would have reported.
+
+``--windows 10`` adds, per agent and 10 s of its flight, the error of each of these and
+of the oracle (the same rule on the ground truth): where along the flight the map's
+estimate, rather than the rule, put the reported pose above the VO.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from shared.feedback_dump import load  # noqa: E402
 from shared.geometry import Sim3  # noqa: E402
 from shared.ids import gid  # noqa: E402
 from shared.settings import Settings  # noqa: E402
-from shared.trajectory import Trajectory, ate, read_tum  # noqa: E402
+from shared.trajectory import Trajectory, aligned_errors, ate, read_tum  # noqa: E402
 
 
 def runs(dump: str | Path) -> dict[str, dict]:
@@ -144,6 +148,32 @@ def replay(a: dict, fc=None) -> np.ndarray:
     return np.stack(out)
 
 
+def windows(a: dict, b: dict, gt: Trajectory, seconds: float) -> list[tuple]:
+    """Where along the flight each trajectory is off: per ``seconds`` of it, the RMS error
+    (m, each trajectory aligned whole, as its ATE) of the raw VO, the reported pose as
+    flown, today's rule replayed on the map states, and the same rule on the ground truth
+    in place of the map (``b``: the agent's records after :func:`with_truth`). A window
+    where the replay is above the VO and the oracle is not is one where the map's
+    estimate, not the rule, cost the agent."""
+    st = a["vo"]["stamps"]
+    now, now_o = recompute(a), recompute(b)
+    series = [a["vo"]["T"], a["vo"]["reported"],
+              replay(a, lambda r: now.get(r["sent_ns"])),
+              replay(b, lambda r: now_o.get(r["sent_ns"]))]  # fmt: skip
+    per = []
+    for T in series:
+        ie, _, err, _ = aligned_errors(Trajectory(st, T), gt)
+        per.append(((st[ie] - st[0]) * 1e-9, err))
+    rows = []
+    for w0 in np.arange(0.0, (st[-1] - st[0]) * 1e-9, seconds):
+        rms = []
+        for t, err in per:
+            m = (t >= w0) & (t < w0 + seconds)
+            rms.append(float(np.sqrt(np.mean(err[m] ** 2))) if m.any() else float("nan"))
+        rows.append((float(w0), *rms))
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dump")
@@ -151,6 +181,9 @@ def main() -> int:
     ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
     ap.add_argument("--oracle", action="store_true",
                     help="ground truth in place of the map's keyframe poses")  # fmt: skip
+    ap.add_argument("--windows", type=float, default=0.0, metavar="S",
+                    help="also per S seconds of each flight: VO, recorded, replayed and "
+                    "oracle error (where the map's estimate cost the agent)")  # fmt: skip
     args = ap.parse_args()
     rows, sums, report = [], np.zeros(3), []
     for ag, a in runs(args.dump).items():
@@ -162,6 +195,14 @@ def main() -> int:
         def err(T, st=st, gt=gt) -> float:
             return ate(Trajectory(st, T), gt).rmse
 
+        if args.windows > 0:
+            b = runs(args.dump)[ag]
+            with_truth(b, gt)
+            print(f"{ag}: per {args.windows:g} s, RMS mm (each trajectory aligned whole)")
+            print(f"{'t_s':>6} {'vo':>7} {'recorded':>9} {'current':>8} {'oracle':>7}")
+            for w0, *rms in windows(a, b, gt, args.windows):
+                print(f"{w0:6.0f} " + " ".join(f"{1e3 * x:{w}.2f}" for x, w in
+                                                zip(rms, (7, 9, 8, 7), strict=True)))  # fmt: skip
         rec = a["vo"]["reported"]
         again = replay(a)
         now = recompute(a)

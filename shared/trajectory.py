@@ -118,16 +118,26 @@ class AteResult:
         return 100.0 * self.rmse / self.path_length if self.path_length > 0 else float("nan")
 
 
-def ate(est: Trajectory, ref: Trajectory, align_scale: bool = True) -> AteResult:
+def aligned_errors(
+    est: Trajectory, ref: Trajectory, align_scale: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Per associated pose of ``est``, its position error after the whole trajectory's
+    alignment onto ``ref`` (Sim(3), or SE(3) without ``align_scale``): (indices into
+    ``est``, indices into ``ref``, errors, the alignment's scale). What :func:`ate`
+    summarizes; per pose, where along a flight the error is."""
     ie, ir = associate(est, ref)
     if len(ie) < 3:
         raise ValueError(f"only {len(ie)} associated poses; need at least 3")
     P = est.positions[ie]
     G = ref.positions[ir]
     S = umeyama(P, G, with_scale=align_scale)
-    err = np.linalg.norm(S.apply(P) - G, axis=1)
+    return ie, ir, np.linalg.norm(S.apply(P) - G, axis=1), S.s
+
+
+def ate(est: Trajectory, ref: Trajectory, align_scale: bool = True) -> AteResult:
+    _, ir, err, scale = aligned_errors(est, ref, align_scale)
     ref_assoc = Trajectory(ref.stamps_ns[ir], ref.poses[ir])
     return AteResult(
-        float(np.sqrt((err**2).mean())), float(err.mean()), float(err.max()), len(ie), S.s,
+        float(np.sqrt((err**2).mean())), float(err.mean()), float(err.max()), len(err), scale,
         ref_assoc.path_length(),
     )  # fmt: skip
