@@ -189,13 +189,7 @@ def main() -> int:
     for ag, a in runs(args.dump).items():
         gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
         st = a["vo"]["stamps"]
-        if args.oracle:
-            with_truth(a, gt)
-
-        def err(T, st=st, gt=gt) -> float:
-            return ate(Trajectory(st, T), gt).rmse
-
-        if args.windows > 0:
+        if args.windows > 0:  # on the map's states and, a second copy, on the truth
             b = runs(args.dump)[ag]
             with_truth(b, gt)
             print(f"{ag}: per {args.windows:g} s, RMS mm (each trajectory aligned whole)")
@@ -203,6 +197,12 @@ def main() -> int:
             for w0, *rms in windows(a, b, gt, args.windows):
                 print(f"{w0:6.0f} " + " ".join(f"{1e3 * x:{w}.2f}" for x, w in
                                                 zip(rms, (7, 9, 8, 7), strict=True)))  # fmt: skip
+        if args.oracle:
+            with_truth(a, gt)
+
+        def err(T, st=st, gt=gt) -> float:
+            return ate(Trajectory(st, T), gt).rmse
+
         rec = a["vo"]["reported"]
         again = replay(a)
         now = recompute(a)
