@@ -186,11 +186,13 @@ def main() -> int:
                     "oracle error (where the map's estimate cost the agent)")  # fmt: skip
     args = ap.parse_args()
     rows, sums, report = [], np.zeros(3), []
+    # --windows replays on the map's states and on the truth: a second copy, loaded once.
+    truth_copy = runs(args.dump) if args.windows > 0 else {}
     for ag, a in runs(args.dump).items():
         gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
         st = a["vo"]["stamps"]
-        if args.windows > 0:  # on the map's states and, a second copy, on the truth
-            b = runs(args.dump)[ag]
+        if args.windows > 0:
+            b = truth_copy[ag]
             with_truth(b, gt)
             print(f"{ag}: per {args.windows:g} s, RMS mm (each trajectory aligned whole)")
             print(f"{'t_s':>6} {'vo':>7} {'recorded':>9} {'current':>8} {'oracle':>7}")

@@ -69,7 +69,7 @@ SCALE_STEP_FULL = 0.3  # map units of step from which a refinement's scale ratio
 # A refinement may move a keyframe by at most this share of its chain's length since the
 # newest trusted keyframe (AgentHandler._agrees_with_chain).
 REFINE_MAX_MOVE = 0.1
-SCALE_ANCHOR_LOOKBACK = 400  # keyframes looked back for the newest trusted one
+TRUSTED_LOOKBACK = 400  # keyframes the gate looks back for the newest trusted one
 CHECKED_KEPT = 64  # an agent's newest keyframes checked by a refinement (trusted ones)
 MIN_CHECK_INLIERS = 20  # a refinement with this many inliers checked its keyframe's pose
 _ref_kf = attrgetter("ref_kf")
@@ -568,13 +568,13 @@ class AgentHandler:
         that moved their keyframe by more than 20 % of that chord were closer to the
         truth in 22 % of 18 (median 42 mm further), 10-20 %: 44 % of 45 (median 4 mm
         further, 415 mm in all); up to 10 %: 50 % of 48 (45 mm closer in all). With no
-        trusted keyframe in the newest SCALE_ANCHOR_LOOKBACK, the refinement stands.
+        trusted keyframe in the newest TRUSTED_LOOKBACK, the refinement stands.
         Only with ``refine_settled_only``: refined against all points (CSfM's way) every
         keyframe is refined, and where the VO drifts the move is the drift itself."""
         kfs = self.smap.kfs
         checked = set(self.checked_ids)
-        for n, a in enumerate(reversed(sorted(self.local_poses))):
-            if n >= SCALE_ANCHOR_LOOKBACK:
+        for n, a in enumerate(sorted(self.local_poses, reverse=True)):
+            if n >= TRUSTED_LOOKBACK:
                 break
             if a >= kf_id:
                 continue
