@@ -56,6 +56,42 @@ def set_priority(niceness: int) -> str | None:
     return None
 
 
+def set_realtime(priority: int) -> str | None:
+    """Put every thread of this process under SCHED_RR at ``priority`` (threads created
+    later inherit it from their creator); returns why it could not, or None. Where the
+    process may not (no CAP_SYS_NICE and RLIMIT_RTPRIO below ``priority``; a container
+    without SYS_NICE), nothing changes: it keeps normal scheduling."""
+    if priority <= 0:
+        return None
+    param = os.sched_param(priority)
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_RR, param)
+        except ProcessLookupError:
+            continue  # the thread ended meanwhile
+        except (OSError, AttributeError) as e:  # AttributeError: no SCHED_RR (not Linux)
+            return f"SCHED_RR {priority}: {e}"
+    return None
+
+
+def raise_to_realtime(priority: int) -> bool:
+    """:func:`set_realtime`, said in the log either way; True when it took effect."""
+    if priority <= 0:
+        return False
+    err = set_realtime(priority)
+    if err is not None:
+        log.warning("normal scheduling (could not set %s); on a host whose cores are all "
+                    "busy keyframe latency grows (grant CAP_SYS_NICE or an RLIMIT_RTPRIO "
+                    "of %d, or set rt_priority 0 to silence this)", err, priority)  # fmt: skip
+        return False
+    log.info("real-time scheduling: SCHED_RR priority %d", priority)
+    return True
+
+
 def lower_priority(niceness: int) -> int:
     """Background services (place recognition, optimization) yield the CPU to the
     mapper. Set in-process so `hivemap up` and compose match."""

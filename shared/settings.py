@@ -217,6 +217,16 @@ class MapperSettings(BaseModel):
     # What the mapper accepts is acked within about this plus a group's registration and
     # store (0.1-0.3 s at 48 agents): 0.5 keeps that under the 1 s bar (issue 18).
     shed_after_s: float = Field(0.5, gt=0)
+    # Real-time scheduling (SCHED_RR at this priority, 1-99; 0 = normal scheduling) for
+    # the mapper, where the process may (root, CAP_SYS_NICE, or an RLIMIT_RTPRIO at
+    # least this high): registration is the latency path of every keyframe, and on a
+    # saturated host it waited for a core more than it ran. At 24 simulated agents on
+    # 2 cores (bench_ramp, fe86aaa) the mapper sat 0.57 s per second in the run queue,
+    # niced peers or not, and its p95 was 498 ms; the same step with it at SCHED_RR 10:
+    # 0.04 s/s, p95 183 ms. The mapper is one GIL, so it takes at most about one core
+    # and the kernel's real-time throttling bounds it beyond that; placerec and the
+    # optimizer (background) keep normal scheduling.
+    rt_priority: int = Field(10, ge=0, le=99)
 
 
 class PlacerecSettings(BaseModel):

@@ -96,6 +96,23 @@ def test_up_serves_and_sigterm_leaves_no_orphans(tmp_path):
                  for p in _descendants(proc.pid) if _alive(p)}  # fmt: skip
         assert any(n.startswith("redis-server") for n in names)
         assert len(_descendants(proc.pid)) >= 4  # redis, router, mapper, api
+
+        # The mapper runs under real-time scheduling where it may (root here), the
+        # others under normal scheduling (shared/settings.py MapperSettings.rt_priority).
+        def policies() -> dict[str, int]:
+            argv = {p: Path(f"/proc/{p}/cmdline").read_text().split("\0")
+                    for p in _descendants(proc.pid) if _alive(p)}  # fmt: skip
+            return {a[2]: os.sched_getscheduler(p) for p, a in argv.items()
+                    if len(a) > 2 and a[1].endswith("hivemap")}  # fmt: skip
+
+        policy = policies()
+        if os.geteuid() == 0:
+            t_end = time.monotonic() + 15  # it raises itself once its imports are done
+            while policy.get("mapper") != os.SCHED_RR and time.monotonic() < t_end:
+                time.sleep(0.2)
+                policy = policies()
+            assert policy.get("mapper") == os.SCHED_RR, policy
+        assert policy.get("api") == os.SCHED_OTHER, policy
         assert _get(f"http://127.0.0.1:{port}/agents") == []
         try:
             urllib.request.urlopen(f"http://127.0.0.1:{port}/agents", timeout=2)

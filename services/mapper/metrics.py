@@ -83,6 +83,11 @@ OVERLOAD_LEVEL = Gauge(
     "What the mapper sheds now: 0 nothing, 1 live poses, 2 + feedback rate, "
     "3 + place recognition and optimization deferred, 4 + keyframe batches",
 )
+REALTIME = Gauge(
+    "hivemap_mapper_realtime_priority",
+    "SCHED_RR priority the mapper's threads run at (0: normal scheduling, as when the "
+    "process may not raise it)",
+)
 SHED = Counter(
     "hivemap_mapper_shed_total",
     "Work shed under overload: poses not stored, feedback rounds slowed, event and "
