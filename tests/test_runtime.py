@@ -63,7 +63,7 @@ def test_set_realtime_without_privilege_says_why_and_changes_nothing():
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to drop to an unprivileged user")
 def test_set_realtime_within_the_rtprio_limit_needs_no_privilege():
-    """What compose grants the mapper's non-root user: ``ulimits: rtprio: 10``."""
+    """What an RLIMIT_RTPRIO grants a non-root user (limits.conf, compose's ``ulimits``)."""
 
     r = _child("10")
     if "skip" in r:
