@@ -28,6 +28,7 @@ estimate, rather than the rule, put the reported pose above the VO.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from pathlib import Path
 
@@ -186,9 +187,11 @@ def main() -> int:
                     "oracle error (where the map's estimate cost the agent)")  # fmt: skip
     args = ap.parse_args()
     rows, sums, report = [], np.zeros(3), []
-    # --windows replays on the map's states and on the truth: a second copy, loaded once.
-    truth_copy = runs(args.dump) if args.windows > 0 else {}
-    for ag, a in runs(args.dump).items():
+    recorded = runs(args.dump)
+    # --windows replays on the map's states and on the truth: a second copy for the
+    # truth (with_truth rewrites the records), copied rather than read from disk again.
+    truth_copy = copy.deepcopy(recorded) if args.windows > 0 else {}
+    for ag, a in recorded.items():
         gt = read_tum(Path(args.out) / f"{ag}_gt.tum")
         st = a["vo"]["stamps"]
         if args.windows > 0:
