@@ -87,6 +87,9 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
     # (Keyframe events are only summed: they run with place recognition on alone.)
     per_group: dict[str, list[float]] = {k: [] for k in stage if k != "events"}
     t_group = 0.0
+    # The mapper's CPU per keyframe over the flight, by tenths of the batches: the map
+    # grows denser as agents fly over each other's places, and each keyframe costs more.
+    per_batch = np.zeros(len(order))
     pr_s = 0.0
     matches = 0
     with RedisServer() as url:
@@ -117,11 +120,14 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             t1 = clock()
             stage["ingest"] += t1 - t0
             t_group += t1 - t0
+            per_batch[j] += t1 - t0
+            mark = j
             if len(group) < GROUP_MAX and j + 1 < len(order):
                 continue
             svc.store_and_ack(group)
             t2 = clock()
             stage["store"] += t2 - t1
+            store_s = t2 - t1
             per_group["ingest"].append(t_group)
             per_group["store"].append(t2 - t1)
             t_group = 0.0
@@ -154,6 +160,9 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
                         chunk.encode()
             stage["feedback"] += clock() - t4
             per_group["feedback"].append(clock() - t4)
+            # The group's store, fusion, culling and feedback, spread over its batches.
+            extra = store_s + clock() - t2  # place recognition's CPU left out
+            per_batch[mark - len(agents) + 1 : mark + 1] += extra / len(agents)
         total = clock() - t_all - pr_s
         if prof:
             prof.disable()
@@ -178,6 +187,9 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
                 for k, v in per_group.items()
                 if v
             },
+            "mapper_cpu_ms_per_kf_by_tenth": [
+                round(1e3 * float(np.mean(part)), 2) for part in np.array_split(per_batch, 10)
+            ],
             "placerec_cpu_ms_per_kf": 1e3 * pr_s / n_kf if pr is not None else None,
             "placerec_matches": matches,
         }

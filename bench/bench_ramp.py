@@ -36,6 +36,7 @@ import re
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -117,6 +118,43 @@ def top_of(path: Path, n: int = 25) -> str:
     return "\n".join(lines)
 
 
+class LatencyTimeline:
+    """The mapper's keyframe latency histogram scraped every ``every`` seconds while a
+    step runs: the p95 of each window tells whether a step's tail comes from a few
+    episodes (the merges at the start, one long hold) or from the whole flight."""
+
+    def __init__(self, stack, every: float = 5.0) -> None:
+        self.stack, self.every = stack, every
+        self.samples: list[tuple[float, dict[str, float]]] = []
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every):
+            try:
+                m = mapper_metrics(self.stack)
+            except Exception:  # noqa: BLE001 - a missed scrape leaves a wider window
+                continue
+            self.samples.append((time.monotonic() - self._t0,
+                                 {k: v for k, v in m.items() if k.startswith(LAT)}))  # fmt: skip
+
+    def stop(self) -> list[dict]:
+        """Per window: its end (s since the start), keyframes, p95 (ms)."""
+        self._stop.set()
+        self._thread.join(10)
+        out, prev = [], {}
+        for t, m in self.samples:
+            diff = {k: v - prev.get(k, 0.0) for k, v in m.items()}
+            cnt = sum(v for k, v in diff.items() if k.startswith(f"{LAT}_count"))
+            if cnt > 0:
+                p95 = 1e3 * pooled_quantile(diff, LAT, 0.95)
+                out.append({"t_s": round(t, 1), "keyframes": int(cnt), "p95_ms": round(p95, 1)})
+            prev = m
+        return out
+
+
 def run_step(
     n: int, seconds: float, profile: Path | None = None, profile_agents: bool = False
 ) -> dict:
@@ -136,6 +174,7 @@ def run_step(
                                  trajs, "--frames", f"0:{int(seconds * 20)}",
                                  "--flush-timeout", "60", "--out", str(out)]  # fmt: skip
         t0 = time.monotonic()
+        timeline = LatencyTimeline(stack)
         p = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, start_new_session=True,
                              preexec_fn=lambda: set_priority(AGENT_NICE))  # fmt: skip
         watch = ProcWatch(p.pid)
@@ -151,6 +190,7 @@ def run_step(
         cpu = {k: cpu_s(pid) - cpu0[k] for k, pid in pids.items()}
         load1 = os.getloadavg()[0]
         metrics = mapper_metrics(stack)
+        windows = timeline.stop()
         # Services that exited during the run (nothing restarts them here).
         died = [c.name for c in stack.children if c.proc.poll() is not None]
         stats = [json.loads(f.read_text()) for f in sorted(out.glob("*_stats.json"))]
@@ -198,6 +238,7 @@ def run_step(
         "all_acked": sum(bool(s["all_acked"]) for s in stats),
         "kf_lost": sum(s.get("kf_lost_unacked", 0) for s in stats),
         "mapper_p95_ms": 1e3 * pooled_quantile(metrics, LAT, 0.95),
+        "mapper_p95_ms_by_window": windows,
         "mapper_median_ms": 1e3 * pooled_quantile(metrics, LAT, 0.5),
         "p95_ms": float(np.nanpercentile(lats, 95) * 1e3),
         "rt_median_ms": float(np.nanmedian(lats) * 1e3),
@@ -323,6 +364,9 @@ def main() -> int:
               f"server CPU ms/kf, cores {r['cpu_cores']}; agents behind real time by "
               f"{r['behind_s_max']:.1f} s (frames late p95 {r['frame_late_p95_ms_max']:.0f} "
               f"ms), agents' process {r['agents_process']}", flush=True)  # fmt: skip
+        wins = r["mapper_p95_ms_by_window"]
+        print("  mapper p95 by window: " + ", ".join(
+            f"{w['t_s']:.0f}s {w['p95_ms']:.0f}" for w in wins))  # fmt: skip
     print(
         table(
             rows,

@@ -321,6 +321,49 @@ def test_optimization_round_trip_keeps_a_consistent_map(redis_url, world):
     assert digest(again.maps[map_id]) == digest(smap)
 
 
+def test_a_correction_of_a_copy_taken_before_a_merge_is_not_applied(redis_url, world):
+    """Both maps' optimizations are out when they merge. The merged-away map's correction
+    is stale (its map is gone); so is the one of the map that stayed put: its copy holds
+    none of the keyframes the merge brought in, and applied it would move each of them
+    by its strongest covisible keyframe's correction, every point with it, in one hold
+    of the map's lock (1.8 s at 24 agents). It changes nothing; the merged map's own
+    run, which the merge asked for, is applied."""
+    from shared.metrics import REJECTED
+
+    settings = Settings(redis_url=redis_url, optimizer=OptimizerSettings(ba_time_budget_s=60.0))
+    svc = MapperService(settings)
+    c = svc.collab
+    c.min_interval = 0.0
+    gts, sims = _two_noisy_agents(svc, world)
+    maps = {a: svc.handlers[a].map_id for a in "AB"}
+    opt = OptimizerService(settings)
+    opt.queue.ensure_group()
+    reqs = {}
+    for a in "AB":
+        assert c.request(maps[a], "loop") is not None
+        reqs[a] = opt.decode(opt.queue.take(block_s=0.1))
+        assert reqs[a].map_id == maps[a]
+    assert c.on_match(_match_from_truth(svc, sims, gts, "B", "A")) == "merge"
+    smap = svc.handlers["A"].smap
+    target = smap.map_id
+    stayed = next(a for a in "AB" if maps[a] == target)
+    before = digest(smap)
+    stale = REJECTED.labels("mapper", keys.map_correction(target), "stale")
+    n0 = stale._value.get()
+    for a in "AB":
+        corr = CorrectionMsg.decode(opt.optimize(reqs[a]).encode())
+        assert c.on_correction(corr) is False
+    assert stale._value.get() == n0 + 1  # the map that stayed; the other one is gone
+    assert digest(smap) == before
+    assert target not in c._inflight  # not out any more: settling may ask again
+    assert c.due(time.monotonic() + 1e3) == [(target, "merge")]
+    sent = c.request(target, "merge")
+    assert sent is not None and set(reqs[stayed].kf_gids.tolist()) < set(sent.kf_gids.tolist())
+    corr = opt.handle(opt.queue.take(block_s=0.1))
+    assert corr is not None and c.on_correction(CorrectionMsg.decode(corr.encode())) is True
+    assert digest(smap) != before and smap.check_invariants() == []
+
+
 def test_a_map_too_large_for_one_job_is_not_sent_and_not_copied_again(redis_url, world):
     """A global copy over what one job can carry (the optimizer could not decode it) is
     not written to the job stream; it is counted, and the map is not copied again at that

@@ -18,6 +18,7 @@ Pure function of (map, correction): no transport, no storage.
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,6 +44,8 @@ class AppliedCorrection:
     kfs_unanchored: set[int] = field(default_factory=set)  # newer keyframes left as they were
     kfs_missing: int = 0  # snapshot keyframes no longer in the map
     mps_missing: int = 0  # snapshot points no longer in the map
+    # Seconds per step and sizes of the work, for the log line of a long hold.
+    phases: dict[str, float] = field(default_factory=dict)
 
     @property
     def changed(self) -> bool:
@@ -193,9 +196,12 @@ def apply_correction(
     ``keep``: keyframes a windowed copy left out (services/mapper/capture.py
     capture_window): they, and the points anchored to them, stay as they are; only
     keyframes that arrived since the copy follow an anchor."""
+    t0 = time.perf_counter()
     if plan is None:
         plan = plan_correction(smap, corr, T_m_kf_at_snapshot, keep=keep)
     res = AppliedCorrection(mps_missing=plan.mps_missing)
+    ph = res.phases
+    ph["plan_s"] = time.perf_counter() - t0
     if corr.map_id != smap.map_id:
         raise ValueError(f"correction for map {corr.map_id!r} applied to {smap.map_id!r}")
     # Per snapshot keyframe still in the map: new pose and the Sim(3) correction.
@@ -232,6 +238,8 @@ def apply_correction(
         new_T[g] = _rigid(C[a] @ kf.T_m_kf)
         C[g] = C[a]
         res.kfs_propagated.add(g)
+    t1 = time.perf_counter()
+    ph["anchors_s"] = t1 - t0 - ph["plan_s"]
     if res.kfs_unanchored:
         log.warning("map %s: %d keyframes without a corrected ancestor keep their pose",
                     smap.map_id, len(res.kfs_unanchored))  # fmt: skip
@@ -253,6 +261,8 @@ def apply_correction(
     moved_off = list(map(_gid, compress(plan.objs, map(not_, ok))))
     res.mps = plan.planned  # a plan is applied once
     res.mps.difference_update(moved_off)
+    t2 = time.perf_counter()
+    ph["planned_s"] = t2 - t1
     # The rest move with their reference keyframe's correction, grouped by correction
     # (keyframes carried along share their anchor's) so each group is one matrix
     # product: a 3x3 product per point cost ~0.2 s of lock hold per 100k points.
@@ -278,11 +288,15 @@ def apply_correction(
             if Cr is None:
                 continue
         groups.setdefault(id(Cr), (Cr, []))[1].append(mp)
+    t3 = time.perf_counter()
+    ph["rest_s"] = t3 - t2
     for Cr, grp in groups.values():
         P = stack_rows(list(map(_pos, grp)), np.float64, 3)
         deque(map(setattr, grp, repeat("pos"), list(P @ Cr[:3, :3].T + Cr[:3, 3])), maxlen=0)
         res.mps.update(map(_gid, grp))
 
+    t4 = time.perf_counter()
+    ph["groups_s"] = t4 - t3
     for g, T in new_T.items():
         smap.kfs[g].T_m_kf = T
         res.kfs.add(g)
@@ -299,6 +313,10 @@ def apply_correction(
             T2[:3, 3] *= s
             smap.culled[g] = (a, T2)
     smap.version += 1
+    ph["kfs_s"] = time.perf_counter() - t4
+    ph.update(planned=len(plan.objs), rest=len(plan.rest), new_points=len(plan.new_points),
+              moved_off=len(moved_off), groups=len(groups), kfs_new=len(res.kfs_propagated),
+              culled=len(smap.culled))  # fmt: skip
     log.info("map %s: correction from version %d applied: %d kfs (%d newer), %d points",
              smap.map_id, corr.base_version, len(res.kfs), len(res.kfs_propagated),
              len(res.mps))  # fmt: skip
