@@ -89,7 +89,7 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
     t_group = 0.0
     # The mapper's CPU per keyframe over the flight, by tenths of the batches: the map
     # grows denser as agents fly over each other's places, and each keyframe costs more.
-    per_batch = np.zeros(len(order))
+    per_batch = {k: np.zeros(len(order)) for k in stage if k != "events"}
     pr_s = 0.0
     matches = 0
     with RedisServer() as url:
@@ -120,7 +120,7 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             t1 = clock()
             stage["ingest"] += t1 - t0
             t_group += t1 - t0
-            per_batch[j] += t1 - t0
+            per_batch["ingest"][j] += t1 - t0
             mark = j
             if len(group) < GROUP_MAX and j + 1 < len(order):
                 continue
@@ -161,8 +161,11 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             stage["feedback"] += clock() - t4
             per_group["feedback"].append(clock() - t4)
             # The group's store, fusion, culling and feedback, spread over its batches.
-            extra = store_s + clock() - t2  # place recognition's CPU left out
-            per_batch[mark - len(agents) + 1 : mark + 1] += extra / len(agents)
+            # Each stage of the group spread over its batches.
+            span = slice(mark - len(agents) + 1, mark + 1)
+            for k, v in (("store", store_s), ("fuse", t3 - t2), ("cull", t4 - t3),
+                         ("feedback", clock() - t4)):  # fmt: skip
+                per_batch[k][span] += v / len(agents)
         total = clock() - t_all - pr_s
         if prof:
             prof.disable()
@@ -188,8 +191,13 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
                 if v
             },
             "mapper_cpu_ms_per_kf_by_tenth": [
-                round(1e3 * float(np.mean(part)), 2) for part in np.array_split(per_batch, 10)
+                round(1e3 * float(np.mean(part)), 2)
+                for part in np.array_split(sum(per_batch.values()), 10)
             ],
+            "stage_ms_per_kf_by_tenth": {
+                k: [round(1e3 * float(np.mean(part)), 2) for part in np.array_split(v, 10)]
+                for k, v in per_batch.items()
+            },
             "placerec_cpu_ms_per_kf": 1e3 * pr_s / n_kf if pr is not None else None,
             "placerec_matches": matches,
         }

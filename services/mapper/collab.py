@@ -249,11 +249,9 @@ class Collaboration:
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
         self._window_keep: dict[tuple[str, int], set[int]] = {}
-        # map -> how many maps were merged into it, and that count when each request's
-        # copy was taken, by (map, version): a correction of a copy taken before a merge
-        # is stale (see ``on_correction``).
-        self._merge_count: dict[str, int] = {}
-        self._snap_merges: dict[tuple[str, int], int] = {}
+        # map -> its version right after the latest merge into it: a correction of a copy
+        # of an older version is stale (``_merged_since``).
+        self._merged_at: dict[str, int] = {}
         # agent -> its newest keyframe a correction settled (while its handler is here)
         self._settled: dict[str, int] = {}
         # map -> when its newest request went out (monotonic), its reason and the map
@@ -432,8 +430,6 @@ class Collaboration:
                 target, source, S_t_s = Q, C, S_Q_C
             moved = move_map(target, source, S_t_s)
             self.reg.merge(source.map_id, target.map_id, S_t_s)
-            with self._lock:
-                self._merge_count[target.map_id] = self._merge_count.get(target.map_id, 0) + 1
             add_loop_edge(target, m.query_gid, m.cand_gid)
             fres = fuse_matched(target, m.mp_q, m.mp_c)
             # Both sides are in the target's units now: the match's scale is spent on the
@@ -450,6 +446,8 @@ class Collaboration:
             self.loops.setdefault(target.map_id, []).extend(old + [lc])
             self._persist_merge(target.map_id, source.map_id, s, moved.moved_kfs, moved.moved_mps)
             self._persist(target.map_id, fres.aliases, fres.changed_kfs, old + [lc])
+            with self._lock:
+                self._merged_at[target.map_id] = target.version
         MATCHES.labels("merge").inc()
         MERGES.inc()
         if self.retired is not None:
@@ -629,9 +627,8 @@ class Collaboration:
             for d in (self._dirty, self._inflight, self._continues, self._resume, self.loops):
                 d.pop(map_id, None)
             self._windows.discard(map_id)
-            self._merge_count.pop(map_id, None)
-            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops,
-                      self._snap_merges):  # fmt: skip
+            self._merged_at.pop(map_id, None)
+            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops):
                 for k in [k for k in d if k[0] == map_id]:
                     del d[k]
             OPT_PENDING.set(len(self._dirty))
@@ -680,8 +677,6 @@ class Collaboration:
         with self._opt_lock:
             reg.wait_for_batches()
             with reg.lock(map_id):
-                with self._lock:
-                    merges_at = self._merge_count.get(map_id, 0)
                 if local:
                     # A windowed BA (capture_window); what it leaves out stays put.
                     cap = capture_window(
@@ -728,9 +723,6 @@ class Collaboration:
                 del self._window_keep[k]
             for k in [k for k in self._snap_loops if k[0] == map_id][:-3]:
                 del self._snap_loops[k]
-            for k in [k for k in self._snap_merges if k[0] == map_id][:-3]:
-                del self._snap_merges[k]
-            self._snap_merges[(map_id, int(req.version))] = merges_at
             if local:
                 self._window_keep[(map_id, int(req.version))] = keep
             else:
@@ -786,8 +778,7 @@ class Collaboration:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
             keep = self._window_keep.pop((c.map_id, int(c.base_version)), None)
             carried = self._snap_loops.pop((c.map_id, int(c.base_version)), set())
-            merges_at = self._snap_merges.pop((c.map_id, int(c.base_version)), None)
-        if self._merged_since(c, merges_at):
+        if self._merged_since(c):
             return False
         if local and keep is None:
             # A windowed BA whose copy this mapper no longer knows (restarted, or the
@@ -819,7 +810,7 @@ class Collaboration:
                         # Merged into another map meanwhile: a request for it follows.
                         REJECTED.labels(SERVICE, keys.map_correction(c.map_id), "stale").inc()
                         return False
-                    if self._merged_since(c, merges_at):
+                    if self._merged_since(c):
                         return False
                     t_hold = time.perf_counter()
                     res = apply_correction(smap, c, snap_poses, plan, keep=keep if local else None)
@@ -875,7 +866,7 @@ class Collaboration:
                                   for k, v in res.phases.items()))  # fmt: skip
         return True
 
-    def _merged_since(self, c: CorrectionMsg, merges_at: int | None) -> bool:
+    def _merged_since(self, c: CorrectionMsg) -> bool:
         """Whether another map was merged into ``c``'s map after the copy ``c`` was
         computed from was taken; if so the correction is rejected as stale, as one of a
         map merged away is: the merge asked for a run of the merged map (``_merge``).
@@ -884,11 +875,13 @@ class Collaboration:
         path to one), and every point with it, in one hold of the lock: at 24 agents a
         copy of 250 keyframes corrected a map of 2800, holding its lock for 1.8 s
         (anchors 0.9 s, 290k points moved 0.8 s) while every agent's batches waited.
-        Unknown (``None``: a request of an earlier run of this mapper) is not stale."""
-        if merges_at is None:
-            return False
+        Told by the map's version (every change bumps it): the copy's is older than the
+        map's right after its latest merge. Not by what was kept of the request, which
+        is pruned to the map's last three (windowed BAs go out every few seconds, and
+        the global run's own record was gone when its correction came back). A merge
+        before this mapper's start is not known here: such a correction is applied."""
         with self._lock:
-            if self._merge_count.get(c.map_id, 0) == merges_at:
+            if int(c.base_version) >= self._merged_at.get(c.map_id, -1):
                 return False
             out = self._inflight.get(c.map_id)
             if out is not None and out[2] == int(c.base_version):
