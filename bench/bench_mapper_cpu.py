@@ -121,13 +121,11 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
             stage["ingest"] += t1 - t0
             t_group += t1 - t0
             per_batch["ingest"][j] += t1 - t0
-            mark = j
             if len(group) < GROUP_MAX and j + 1 < len(order):
                 continue
             svc.store_and_ack(group)
             t2 = clock()
             stage["store"] += t2 - t1
-            store_s = t2 - t1
             per_group["ingest"].append(t_group)
             per_group["store"].append(t2 - t1)
             t_group = 0.0
@@ -158,14 +156,13 @@ def run(n: int, frames: slice, profile: Path | None, placerec: bool = True) -> d
                                         m.feedback_correction_kfs)  # fmt: skip
                     if chunk is not None:
                         chunk.encode()
-            stage["feedback"] += clock() - t4
-            per_group["feedback"].append(clock() - t4)
-            # The group's store, fusion, culling and feedback, spread over its batches.
-            # Each stage of the group spread over its batches.
-            span = slice(mark - len(agents) + 1, mark + 1)
-            for k, v in (("store", store_s), ("fuse", t3 - t2), ("cull", t4 - t3),
-                         ("feedback", clock() - t4)):  # fmt: skip
-                per_batch[k][span] += v / len(agents)
+            t6 = clock()
+            stage["feedback"] += t6 - t4
+            per_group["feedback"].append(t6 - t4)
+            # Each stage of the group spread over its batches (the group ends at batch j).
+            span = slice(j - len(agents) + 1, j + 1)
+            for k in ("store", "fuse", "cull", "feedback"):
+                per_batch[k][span] += per_group[k][-1] / len(agents)
         total = clock() - t_all - pr_s
         if prof:
             prof.disable()
