@@ -67,7 +67,9 @@ def _holds_over(metrics: dict[str, float], s: float) -> float:
     return metrics.get(f"{name}_count", 0.0) - le if le is not None else float("nan")
 
 
-def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subprocess.Popen]:
+def _profilers(
+    pids: dict[str, int], seconds: float, out: Path, start_s: float = 0.0
+) -> list[subprocess.Popen]:
     """py-spy samplers on the server's services (and, given as "agents", the simulated
     agents' processes) for ``seconds`` (collapsed stacks, one file per process; the rate
     is low so the sampler's own CPU stays small). The agents' processes are sampled with
@@ -76,9 +78,13 @@ def _profilers(pids: dict[str, int], seconds: float, out: Path) -> list[subproce
     if not spy.exists():
         raise SystemExit("--profile needs py-spy in the venv: .venv/bin/pip install py-spy")
     out.mkdir(parents=True, exist_ok=True)
-    return [subprocess.Popen([str(spy), "record", "--pid", str(pids[name]), "--rate", "50",
-                              "--nonblocking", "--format", "raw", "--duration",
-                              str(int(seconds)), "--output", str(out / f"{name}.txt"),
+    # From ``start_s`` into the step on (its late part, when every agent is airborne and
+    # the merged map dense, is where the latency tail is), to its end and the drain.
+    delay = ["sh", "-c", f'sleep {start_s}; exec "$@"', "sh"] if start_s > 0 else []
+    dur = int(seconds) if start_s <= 0 else int(seconds - start_s + 12)
+    return [subprocess.Popen([*delay, str(spy), "record", "--pid", str(pids[name]), "--rate",
+                              "50", "--nonblocking", "--format", "raw", "--duration",
+                              str(dur), "--output", str(out / f"{name}.txt"),
                               *(["--idle", "--subprocesses"] if name == "agents" else [])],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             for name in (*SERVER, "agents") if name in pids]  # fmt: skip
@@ -156,7 +162,11 @@ class LatencyTimeline:
 
 
 def run_step(
-    n: int, seconds: float, profile: Path | None = None, profile_agents: bool = False
+    n: int,
+    seconds: float,
+    profile: Path | None = None,
+    profile_agents: bool = False,
+    profile_from: float = 0.0,
 ) -> dict:
     stack = Stack(stack_settings(log_level="WARNING"), env={"HIVEMAP_LOG_LEVEL": "WARNING"})
     stack.start(with_api=False)
@@ -180,7 +190,7 @@ def run_step(
         watch = ProcWatch(p.pid)
         server_watch = {k: ProcWatch(pids[k], 1.0, children=False) for k in SERVER if k in pids}
         prof = {**pids, "agents": p.pid} if profile_agents else pids
-        spies = _profilers(prof, seconds, profile / f"{n}") if profile else []
+        spies = _profilers(prof, seconds, profile / f"{n}", profile_from) if profile else []
         p.wait(seconds * 4 + 300)
         agents_proc = watch.stop()
         server_proc = {k: w.stop() for k, w in server_watch.items()}
@@ -277,6 +287,13 @@ def run_step(
             for k, v in metrics.items()
             if k.startswith("hivemap_mapper_shed_total{")
         },  # fmt: skip
+        # Merges and loops applied (and loops found already tied): what the place
+        # recognition brought to the mapper in this step.
+        "matches": {
+            k.split('"')[1]: v
+            for k, v in metrics.items()
+            if k.startswith("hivemap_matches_applied_total{")
+        },  # fmt: skip
         "wall_s": wall,
         "flight_s": flight,
         # How far behind real time the simulated agents fell (a run that fell behind
@@ -346,6 +363,9 @@ def main() -> int:
                     help="with --profile, the simulated agents' processes too (idle threads "
                          "included; py-spy on tens of threads takes CPU the agents need: "
                          "at 16 agents they fell 120 s behind real time)")  # fmt: skip
+    ap.add_argument("--profile-from", type=float, default=0.0,
+                    help="with --profile, start sampling this many seconds into each step "
+                         "(its dense, airborne end: --seconds 60 --profile-from 40)")  # fmt: skip
     args = ap.parse_args()
     ov = args.overload
     args.counts = args.counts or ("8,48" if ov else "1,8,16,24,32")
@@ -354,7 +374,7 @@ def main() -> int:
     rows = []
     for n in (int(x) for x in args.counts.split(",")):
         print(f"{n} agent(s) ...", flush=True)
-        rows.append(run_step(n, args.seconds, args.profile, args.profile_agents))
+        rows.append(run_step(n, args.seconds, args.profile, args.profile_agents, args.profile_from))
         if args.profile:
             for f in sorted((args.profile / str(n)).glob("*.txt")):
                 print(top_of(f), flush=True)

@@ -939,3 +939,38 @@ def test_loop_residual_measures_rotation_and_translation_share():
     T[:3, 3] = [1.0, 0.05, 0.0]
     rot, trans = loop_residual(S, T)
     assert abs(rot - 2.0) < 1e-9 and abs(trans - 0.05) < 1e-12
+
+
+def test_a_loop_fuses_fewer_matched_points_while_the_maps_actor_is_busy(redis_url, world):
+    """A loop's matched points are fused ``loop_fuse_max`` pairs at most; while the map's
+    actor spends over half its time on batches, ``loop_fuse_busy`` (the loop edge
+    carries the constraint; the fusion is background work and counted as shed)."""
+    from types import SimpleNamespace
+
+    from services.mapper.metrics import SHED
+
+    svc = MapperService(Settings(redis_url=redis_url))
+    c = svc.collab
+    _two_noisy_agents(svc, world)
+    smap = svc.maps[svc.handlers["A"].map_id]
+    actor = svc.registry.actor(smap.map_id)
+    pts = sorted(smap.mps)
+    assert len(pts) >= 4 * c.loop_fuse_max
+    half = len(pts) // 2
+    m = SimpleNamespace(mp_q=np.array(pts[:half]), mp_c=np.array(pts[half : 2 * half]))
+
+    def shed() -> float:
+        return SHED.labels("loop_fusion")._value.get()
+
+    n0, s0 = len(smap.mps), shed()
+    actor.load = lambda: 0.2
+    c._fuse_in_slices(smap.map_id, m)
+    assert n0 - len(smap.mps) == c.loop_fuse_max and shed() == s0
+    n1 = len(smap.mps)
+    live = sorted(smap.mps)  # distinct points each, so every pair fuses
+    half = len(live) // 2
+    m = SimpleNamespace(mp_q=np.array(live[:half]), mp_c=np.array(live[half : 2 * half]))
+    actor.load = lambda: 0.8
+    c._fuse_in_slices(smap.map_id, m)
+    assert n1 - len(smap.mps) == c.loop_fuse_busy and shed() == s0 + 1
+    assert not smap.check_invariants()

@@ -56,7 +56,10 @@ may hold the map's lock for long (8 agents x 2-4 keyframes/s leave ~30 ms per ba
 - a correction is applied in memory under the lock in one step (a half-corrected map
   would register new keyframes against stale points) and stored in slices;
 - a loop's matched points are fused a few pairs per hold, and at most
-  ``loop_fuse_max`` of them (the loop edge carries the constraint);
+  ``loop_fuse_max`` of them (the loop edge carries the constraint), ``loop_fuse_busy``
+  while the map's actor is more than half busy with batches: at 24 agents, late in the
+  flight, loops between agents flying the same routes came every second or two and
+  their fusion took 11 % of the mapper's GIL while batches queued for 200-300 ms;
 - copies and corrections of a big map are spaced so that together they take at most
   ``opt_share`` of the mapper's time, and its global optimizations so that they take at
   most ``optimizer_share`` of an optimizer's core (a 3000-keyframe map's BA runs for its
@@ -120,6 +123,7 @@ from .metrics import (
     OPT_REQUESTS,
     OPT_SKIPPED,
     QUEUE_DEPTH,
+    SHED,
 )
 from .registry import MapRegistry
 from .server_map import ServerMap
@@ -225,6 +229,8 @@ class Collaboration:
         self.optimizer_share = optimizer_share
         self.persist_chunk = 2000  # points per stored slice of a correction
         self.loop_fuse_max = 100  # matched point pairs fused per loop
+        self.loop_fuse_busy = 20  # ... while the map's actor is busy (``_fuse_in_slices``)
+        self.busy_load = 0.5
         self.fuse_slice = 10  # pairs fused per hold of the map's lock
         self.drop_slice = 1000  # outlier observations dropped per hold (_drop_outliers)
         # Poses each optimization request was made from, by (map, version): a correction
@@ -388,7 +394,12 @@ class Collaboration:
         Matched points are the most observed ones (up to ~80 keyframes each in a dense
         merged map), and fusing one moves all its observations, so only an evenly spread
         subset is fused, a few pairs per hold of the map's lock."""
-        keep = _spread(len(m.mp_q), self.loop_fuse_max)
+        n = self.loop_fuse_max
+        actor = self.reg.actors.get(map_id)
+        if actor is not None and actor.load() > self.busy_load:
+            n = self.loop_fuse_busy
+            SHED.labels("loop_fusion").inc()
+        keep = _spread(len(m.mp_q), n)
         mp_q, mp_c = m.mp_q[keep], m.mp_c[keep]
         aliases: dict[int, int] = {}
         for i in range(0, len(mp_q), self.fuse_slice):

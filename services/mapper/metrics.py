@@ -91,7 +91,8 @@ REALTIME = Gauge(
 SHED = Counter(
     "hivemap_mapper_shed_total",
     "Work shed under overload: poses not stored, feedback rounds slowed, event and "
-    "optimization rounds deferred, keyframe batches NACKed for a resend after a retry-after",
+    "optimization rounds deferred, loops' point fusion cut short, keyframe batches NACKed "
+    "for a resend after a retry-after",
     ["what"],
 )
 
@@ -101,4 +102,4 @@ at_zero(MATCHES, ("merge", "loop", "loop_redundant"))
 at_zero(OPT_REQUESTS, OptimizeRequest.REASONS)
 at_zero(REGISTRATION, ("duplicate", "stale", "early", "orphan", "rechained"))
 at_zero(REFINEMENTS, ("accepted", "gated"))
-at_zero(SHED, ("pose", "feedback", "placerec", "optimize", "keyframe_batch"))
+at_zero(SHED, ("pose", "feedback", "placerec", "optimize", "keyframe_batch", "loop_fusion"))
