@@ -430,7 +430,11 @@ def test_a_restarted_mapper_knows_which_keyframes_were_settled(redis_url, world)
             svc.maps[map_id].kfs[g].optimized for g in mine
         ]
     now = time.monotonic()
-    assert ca.mark_unsettled(now) == [] and ca.due(now) == []
+    # What the mapper before the restart would do next, the restarted one does: a
+    # windowed BA for each agent's frontier the global run moved but left unsettled
+    # (collab ``_frontier``), not a whole "resume" run.
+    assert ca.mark_unsettled(now) == svc.collab.mark_unsettled(now)
+    assert ca.due(now) == svc.collab.due(now) == [(map_id, "local")]
     _fly_on(again, sims, gts, "A", "MH01", 700, 900)
     assert ca.mark_unsettled(now) == [map_id]
     assert ca.due(now) == [(map_id, "local")]  # settling, not a whole "resume" run
@@ -974,3 +978,27 @@ def test_a_loop_fuses_fewer_matched_points_while_the_maps_actor_is_busy(redis_ur
     c._fuse_in_slices(smap.map_id, m)
     assert n1 - len(smap.mps) == c.loop_fuse_busy and shed() == s0 + 1
     assert not smap.check_invariants()
+
+
+def test_a_global_run_moves_each_agents_frontier_but_leaves_it_to_a_window(redis_url, world):
+    """A global correction settles the keyframes of its copy except each agent's
+    ``settle_window_kfs`` newest unsettled ones (collab ``_frontier``: a global BA has no
+    VO relative-motion edges, and a frontier keyframe few observations): those are moved
+    with the rest, and the next windowed BA settles them."""
+    _, svc, _, _, map_id, opt = _merged_with_optimizer(redis_url, world)
+    c = svc.collab
+    n = c.settle_window_kfs
+    smap = svc.maps[map_id]
+    before = {g: k.T_m_kf.copy() for g, k in smap.kfs.items()}
+    c.request(map_id, "merge")
+    job = opt.queue.take(block_s=0.1)
+    assert c.on_correction(CorrectionMsg.decode(opt.handle(job).encode()))
+    for agent in "AB":
+        mine = sorted(g for g, k in smap.kfs.items() if k.agent == agent)
+        assert [smap.kfs[g].optimized for g in mine[-n:]] == [False] * n
+        assert all(smap.kfs[g].optimized for g in mine[:-n])
+        # Moved with the rest all the same.
+        assert any(not np.allclose(smap.kfs[g].T_m_kf, before[g]) for g in mine[-n:])
+        assert c._settled[agent] == local_id_of(mine[-n - 1])
+    assert c.mark_unsettled(time.monotonic()) == [map_id]
+    assert c.due(time.monotonic()) == [(map_id, "local")]

@@ -149,6 +149,24 @@ def _spread(n: int, k: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
 
 
+def _frontier(smap: ServerMap, gids: list[int], n: int) -> set[int]:
+    """Of each agent's ``n`` newest keyframes in ``gids`` (a global copy), those not
+    settled yet. A global BA has no VO relative-motion edges (a windowed BA has,
+    ``window_odometry``), and the keyframes at an agent's frontier have few observations
+    yet: in the seed-1 pair at 481db0d, each global run after a loop moved agent1's
+    newest settled keyframes so that its frame correction stepped by 1-5 thousandths of a
+    VO unit and the reported pose went 10-20 mm off for 5-10 s (12.5 against the VO's
+    5.1 mm over 140-150 s, 22 against 2.6 over the last 5 s), until the next windowed
+    BA settled them again. So a global correction moves these but does not settle them:
+    the frame correction stays on keyframes the global run did constrain, and the next
+    windowed BA settles the frontier."""
+    by_agent: dict[int, list[int]] = {}
+    for g in sorted(gids):
+        by_agent.setdefault(int(agent_index_of(g)), []).append(g)
+    kfs = smap.kfs
+    return {g for gs in by_agent.values() for g in gs[-n:] if not kfs[g].optimized}
+
+
 def _kind(reason: str | None) -> str:
     """The kind of a request for ``reason``: "local" for a windowed BA, "global" for any
     other (loop, merge, settle, continue, resume). Each kind of a map is spaced by its own runs
@@ -255,6 +273,10 @@ class Collaboration:
         # Keyframes in the map when a windowed copy was taken, by (map, version): its
         # correction leaves those outside the window as they are.
         self._window_keep: dict[tuple[str, int], set[int]] = {}
+        # Each agent's newest keyframes a global copy held unsettled, by (map, version):
+        # its correction moves them but leaves them for the next windowed BA to settle
+        # (``_frontier``).
+        self._snap_frontier: dict[tuple[str, int], set[int]] = {}
         # map -> its version right after the latest merge into it: a correction of a copy
         # of an older version is stale (``_merged_since``).
         self._merged_at: dict[str, int] = {}
@@ -639,7 +661,8 @@ class Collaboration:
                 d.pop(map_id, None)
             self._windows.discard(map_id)
             self._merged_at.pop(map_id, None)
-            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops):
+            for d in (self._spacings, self._snap_poses, self._window_keep, self._snap_loops,
+                      self._snap_frontier):  # fmt: skip
                 for k in [k for k in d if k[0] == map_id]:
                     del d[k]
             OPT_PENDING.set(len(self._dirty))
@@ -683,6 +706,7 @@ class Collaboration:
             OPT_SKIPPED.labels("too_large").inc()
             return None
         keep: set[int] = set()
+        frontier: set[int] = set()
         # The lock is held only for the capture (~30 ms at 2000 keyframes); the copy is
         # built outside it, with corrections held off so point positions stay in one frame.
         with self._opt_lock:
@@ -700,6 +724,8 @@ class Collaboration:
                     loops = [(lc.q, lc.c, lc.S_q_c) for lc in self.loops.get(map_id, [])
                              if lc.q in smap.kfs and lc.c in smap.kfs]  # fmt: skip
                     cap = capture_map(smap, loops, covis=False)
+                    if cap is not None and self.settle_window_kfs > 0:
+                        frontier = _frontier(smap, cap.gids, self.settle_window_kfs)
             if cap is None:
                 if local:
                     spacing.sent = time.monotonic()  # not again at once
@@ -734,10 +760,13 @@ class Collaboration:
                 del self._window_keep[k]
             for k in [k for k in self._snap_loops if k[0] == map_id][:-3]:
                 del self._snap_loops[k]
+            for k in [k for k in self._snap_frontier if k[0] == map_id][:-3]:
+                del self._snap_frontier[k]
             if local:
                 self._window_keep[(map_id, int(req.version))] = keep
             else:
                 self._snap_loops[(map_id, int(req.version))] = {(q, c) for q, c, _ in loops}
+                self._snap_frontier[(map_id, int(req.version))] = frontier
             self._snap_poses[(map_id, int(req.version))] = dict(
                 zip(req.kf_gids.tolist(), req.T_m_kf.copy(), strict=True)
             )
@@ -789,6 +818,7 @@ class Collaboration:
             snap_poses = self._snap_poses.pop((c.map_id, int(c.base_version)), None)
             keep = self._window_keep.pop((c.map_id, int(c.base_version)), None)
             carried = self._snap_loops.pop((c.map_id, int(c.base_version)), set())
+            frontier = self._snap_frontier.pop((c.map_id, int(c.base_version)), set())
         if self._merged_since(c):
             return False
         if local and keep is None:
@@ -824,13 +854,17 @@ class Collaboration:
                     if self._merged_since(c):
                         return False
                     t_hold = time.perf_counter()
-                    res = apply_correction(smap, c, snap_poses, plan, keep=keep if local else None)
+                    res = apply_correction(smap, c, snap_poses, plan, keep=keep if local else None,
+                                           unsettled=frontier)  # fmt: skip
                     smap.stop_recording(journal)
                     changed_kfs = res.kfs | res.kfs_propagated
                     ph = res.phases
                     t1 = time.perf_counter()
                     self._rescale_handlers(smap, c)
-                    self._note_settled(c.map_id, c.kf_gids)
+                    settled = c.kf_gids
+                    if frontier:
+                        settled = settled[~np.isin(settled, list(frontier))]
+                    self._note_settled(c.map_id, settled)
                     t2 = time.perf_counter()
                     pipe = self.pipeline(c.map_id)
                     for h in reg.handlers_of(c.map_id):

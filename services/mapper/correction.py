@@ -180,6 +180,7 @@ def apply_correction(
     T_m_kf_at_snapshot: dict[int, np.ndarray] | None = None,
     plan: CorrectionPlan | None = None,
     keep: set[int] | None = None,
+    unsettled: set[int] | None = None,
 ) -> AppliedCorrection:
     """Write ``corr`` into ``smap`` (see the module doc). ``T_m_kf_at_snapshot``: the
     poses the correction was computed from, when some changed since the snapshot
@@ -195,7 +196,10 @@ def apply_correction(
 
     ``keep``: keyframes a windowed copy left out (services/mapper/capture.py
     capture_window): they, and the points anchored to them, stay as they are; only
-    keyframes that arrived since the copy follow an anchor."""
+    keyframes that arrived since the copy follow an anchor.
+
+    ``unsettled``: keyframes of the copy moved like the rest but not marked settled
+    (``ServerKeyframe.optimized``; a global copy's frontier, collab ``_frontier``)."""
     t0 = time.perf_counter()
     if plan is None:
         plan = plan_correction(smap, corr, T_m_kf_at_snapshot, keep=keep)
@@ -303,7 +307,7 @@ def apply_correction(
         res.kfs.add(g)
     for g in snap_kfs:
         kf = smap.kfs.get(g)
-        if kf is not None:
+        if kf is not None and not (unsettled and g in unsettled):
             kf.optimized = True
     # Culled keyframes are kept as (anchor, T_anchor_kf) for registration chains; the
     # relative translation scales with the anchor's neighbourhood.
