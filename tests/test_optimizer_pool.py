@@ -59,7 +59,10 @@ def stack(settings, tmp_path):
     # One job per request: a BA stopped by its time budget (on a loaded machine) would
     # ask for a continuation, a newer copy of the map, and a worker resumed from a pause
     # then drops its stale run instead of finishing it, which is what the tests watch.
+    # Nor settling: a global run leaves the agent's frontier to a windowed BA (collab
+    # ``_frontier``), which would be such a newer copy too.
     mapper.collab.max_continues = 0
+    mapper.collab.settle_kfs = mapper.collab.settle_window_kfs = 0
     mapper.start()  # rebuilds the map from Redis, takes corrections over Zenoh
     workers = [_worker(settings, tmp_path, f"opt{i}") for i in range(2)]
     r = connect(settings.redis_url)
