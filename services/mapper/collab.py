@@ -754,14 +754,11 @@ class Collaboration:
             return None
         with self._lock:
             self._inflight[map_id] = (sent, reason, int(req.version))
-            for k in [k for k in self._snap_poses if k[0] == map_id][:-3]:
-                del self._snap_poses[k]  # requests long superseded
-            for k in [k for k in self._window_keep if k[0] == map_id][:-3]:
-                del self._window_keep[k]
-            for k in [k for k in self._snap_loops if k[0] == map_id][:-3]:
-                del self._snap_loops[k]
-            for k in [k for k in self._snap_frontier if k[0] == map_id][:-3]:
-                del self._snap_frontier[k]
+            # Each record's requests long superseded (beyond the map's last three).
+            for d in (self._snap_poses, self._window_keep, self._snap_loops,
+                      self._snap_frontier):  # fmt: skip
+                for k in [k for k in d if k[0] == map_id][:-3]:
+                    del d[k]
             if local:
                 self._window_keep[(map_id, int(req.version))] = keep
             else:

@@ -201,6 +201,7 @@ def apply_correction(
     ``unsettled``: keyframes of the copy moved like the rest but not marked settled
     (``ServerKeyframe.optimized``; a global copy's frontier, collab ``_frontier``)."""
     t0 = time.perf_counter()
+    unsettled = unsettled or set()
     if plan is None:
         plan = plan_correction(smap, corr, T_m_kf_at_snapshot, keep=keep)
     res = AppliedCorrection(mps_missing=plan.mps_missing)
@@ -307,7 +308,7 @@ def apply_correction(
         res.kfs.add(g)
     for g in snap_kfs:
         kf = smap.kfs.get(g)
-        if kf is not None and not (unsettled and g in unsettled):
+        if kf is not None and g not in unsettled:
             kf.optimized = True
     # Culled keyframes are kept as (anchor, T_anchor_kf) for registration chains; the
     # relative translation scales with the anchor's neighbourhood.
