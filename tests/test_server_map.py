@@ -286,3 +286,70 @@ def test_a_refinement_that_contradicts_the_vo_chain_is_refused(world, monkeypatc
     monkeypatch.setattr(registration, "REFINE_MAX_MOVE", np.inf)
     h, vo = _fly_with(world, MapperParams(), at, settle_then_points_off)
     assert off_chain_next(h, vo) > 0.05  # ungated, it follows the points
+
+
+def test_point_table_mirrors_every_change_of_the_points():
+    """Fusion, feedback and keyframe events read positions and descriptors from the
+    map's point table: whatever changes a point (insertion one by one or in bulk, a
+    position assigned one at a time or many at once, fusion, removal with its last
+    observer, a move into another map, a copy) leaves the table equal to the points,
+    and a gid it does not hold is read from the point objects."""
+    from copy import deepcopy
+
+    from services.mapper.merge import move_map
+    from shared.geometry import Sim3
+    from shared.ids import gid
+
+    rng = np.random.default_rng(3)
+
+    def pt(g):
+        return ServerMapPoint(g, rng.normal(size=3), rng.integers(0, 255, 32, np.uint8), 0)
+
+    m = ServerMap("m")
+    a, b = [gid(1, i) for i in range(40)], [gid(2, i) for i in range(3000, 3040)]
+    m.add_map_points([pt(g) for g in a])  # bulk
+    for g in b:
+        m.add_map_point(pt(g))  # one by one
+    m.mps[gid(3, 7)] = pt(gid(3, 7))  # straight into the dict
+    m.add_keyframe(_kf(gid(1, 0), a[:30] + b[:10]))
+    m.add_keyframe(_kf(gid(1, 1), a[10:40] + b[10:40]))
+    assert m.check_invariants() == []
+    both = np.array(a[5:15] + b[:3], np.int64)
+    want = np.stack([m.mps[g].pos for g in both.tolist()])
+    np.testing.assert_array_equal(m.positions(both), want)
+    np.testing.assert_array_equal(
+        m.descriptors(both), np.stack([m.mps[g].descriptor for g in both.tolist()])
+    )
+    m.mps[a[3]].pos = np.array([1.0, 2.0, 3.0])  # one position
+    m.set_positions([m.mps[g] for g in a[:3]], np.ones((3, 3)))  # many at once
+    np.testing.assert_array_equal(m.positions(np.array(a[:4])),
+                                  [[1, 1, 1], [1, 1, 1], [1, 1, 1], [1, 2, 3]])  # fmt: skip
+    m.fuse(a[12], b[12])  # b[12] dropped
+    dead = m.remove_keyframe(gid(1, 0))  # points only it observed go
+    assert dead and all(g not in m.mps for g in dead)
+    assert m.check_invariants() == []
+    try:
+        m.positions(np.array([b[12]]))
+        raise AssertionError("a fused-away point was still read")
+    except KeyError:
+        pass
+    # A local id past what the table mirrors is read from the object.
+    far = gid(4, (1 << 22) + 5)
+    m.add_map_point(pt(far))
+    np.testing.assert_array_equal(m.positions(np.array([far, a[20]])),
+                                  np.stack([m.mps[far].pos, m.mps[a[20]].pos]))  # fmt: skip
+    assert m.check_invariants() == []
+    c = deepcopy(m)
+    c.mps[a[20]].pos = np.zeros(3)
+    assert c.check_invariants() == [] and m.check_invariants() == []
+    assert m.positions(np.array([a[20]]))[0].any()
+    dst = ServerMap("d")
+    dst.add_map_point(pt(gid(9, 0)))
+    moved = list(m.mps)
+    S = Sim3(np.eye(3), np.array([1.0, 0.0, 0.0]), 2.0)
+    before = m.positions(np.array(moved))
+    move_map(dst, m, S)
+    np.testing.assert_allclose(dst.positions(np.array(moved)), S.apply(before))
+    assert not m.mps and dst.check_invariants() == []
+    dst.mps[moved[0]].pos = np.full(3, 7.0)  # it reports to its new map's table
+    np.testing.assert_array_equal(dst.positions(np.array(moved[:1])), [[7.0, 7.0, 7.0]])

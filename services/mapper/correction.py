@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from itertools import chain, compress, islice, repeat
+from itertools import chain, compress, islice
 from operator import attrgetter, not_
 
 import numpy as np
@@ -30,10 +29,10 @@ import numpy as np
 from shared.geometry import se3_inv
 from shared.messages import CorrectionMsg
 
-from .server_map import ServerMap, stack_rows
+from .server_map import ServerMap
 
 log = logging.getLogger(__name__)
-_gid, _pos, _ref_kf = attrgetter("gid"), attrgetter("pos"), attrgetter("ref_kf")
+_gid, _ref_kf = attrgetter("gid"), attrgetter("ref_kf")
 
 
 @dataclass
@@ -102,7 +101,7 @@ class CorrectionPlan:
     snap_kfs: set[int]
     kf_C: list[tuple[int, np.ndarray, np.ndarray]]  # (gid, corrected pose, C) per snapshot kf
     objs: list = field(default_factory=list)  # points taking an optimized position ...
-    rows: list = field(default_factory=list)  # ... that position (rows of one array)
+    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... that position
     planned: set[int] = field(default_factory=set)  # their gids
     rest: list[int] = field(default_factory=list)  # points of the copy that move with a C
     index: dict[int, int] = field(default_factory=dict)  # corrected point gid -> row
@@ -168,7 +167,7 @@ def plan_correction(
         if pause is not None:
             pause()
     pos = np.asarray(corr.mp_pos, np.float64).reshape(-1, 3)
-    plan.rows = list(pos[np.array(idx, np.int64)]) if idx else []
+    plan.rows = pos[np.array(idx, np.int64)] if idx else np.zeros((0, 3))
     plan.planned = {mp.gid for mp in objs}
     plan.mps_missing = len(gids) - found
     return plan
@@ -262,8 +261,7 @@ def apply_correction(
     if len(plan.rows) != len(plan.objs):
         raise ValueError("a plan's rows and points differ in number")
     ok = list(map(snap_kfs.__contains__, map(_ref_kf, plan.objs)))
-    deque(map(setattr, compress(plan.objs, ok), repeat("pos"), compress(plan.rows, ok)),
-          maxlen=0)  # fmt: skip
+    smap.set_positions(list(compress(plan.objs, ok)), plan.rows[np.array(ok, bool)])
     moved_off = list(map(_gid, compress(plan.objs, map(not_, ok))))
     res.mps = plan.planned  # a plan is applied once
     res.mps.difference_update(moved_off)
@@ -297,8 +295,8 @@ def apply_correction(
     t3 = time.perf_counter()
     ph["rest_s"] = t3 - t2
     for Cr, grp in groups.values():
-        P = stack_rows(list(map(_pos, grp)), np.float64, 3)
-        deque(map(setattr, grp, repeat("pos"), list(P @ Cr[:3, :3].T + Cr[:3, 3])), maxlen=0)
+        P = smap.positions(np.fromiter(map(_gid, grp), np.int64, len(grp)))
+        smap.set_positions(grp, P @ Cr[:3, :3].T + Cr[:3, 3])
         res.mps.update(map(_gid, grp))
 
     t4 = time.perf_counter()

@@ -75,7 +75,6 @@ MAX_SCALE_STEP = 0.0125
 SCALE_STEP_SPREAD = 0.2
 MAX_SCALE_STEP_NARROW = 0.04
 _pos = attrgetter("pos")
-_desc = attrgetter("descriptor")
 
 
 def anchor_count(
@@ -423,8 +422,7 @@ def build_chunk(
     mp_gids = uniq[order]
     rank = np.empty(len(uniq), np.int64)
     rank[order] = np.arange(len(uniq))
-    pts = list(map(smap.mps.__getitem__, mp_gids.tolist()))
-    pos = stack_rows(list(map(_pos, pts)), np.float64, 3)
+    pos = smap.positions(mp_gids)
     p_ref = s_a * pos @ R_a.T + t_a
     kp, desc, idx = [], [], []
     for kf in kfs:
@@ -456,7 +454,7 @@ def build_chunk(
         mp_agents=mp_agents,
         mp_ids=local_id_of(mp_gids),
         p_ref=p_ref.astype(np.float64),
-        mp_descriptors=stack_rows(list(map(_desc, pts)), np.uint8, 32),
+        mp_descriptors=smap.descriptors(mp_gids),
         sent_ns=now_ns, S_g_l=S_g_l,
     )  # fmt: skip
 

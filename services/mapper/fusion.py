@@ -10,8 +10,6 @@ local map, or two agents mapped it).
 
 from __future__ import annotations
 
-from operator import attrgetter
-
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -19,10 +17,7 @@ from shared.camera import PinholeRadTan
 from shared.ids import present_in, unique_ids
 from shared.orb import hamming
 
-from .server_map import ServerKeyframe, ServerMap, stack_rows
-
-_pos = attrgetter("pos")
-_desc = attrgetter("descriptor")
+from .server_map import ServerKeyframe, ServerMap
 
 
 def fuse_by_projection(
@@ -48,9 +43,7 @@ def fuse_by_projection(
     cand = cand[~present_in(cand, kf.mp)]  # sorted, as np.setdiff1d gives them
     if len(cand) == 0:
         return 0, changed, removed, aliases
-    # map/attrgetter: the per-candidate lookups at C speed (thousands per keyframe).
-    pts = list(map(smap.mps.__getitem__, cand.tolist()))
-    P = stack_rows(list(map(_pos, pts)), np.float64, 3)
+    P = smap.positions(cand)
     R, t = kf.T_m_kf[:3, :3], kf.T_m_kf[:3, 3]
     X_c = (P - t) @ R
     uv, ok = cam.project(X_c, min_depth=0.1)
@@ -76,8 +69,7 @@ def fuse_by_projection(
         return 0, changed, removed, aliases
     cand, idx, valid = cand[reach], idx[reach], valid[reach]
     idx_safe = np.where(valid, idx, 0)
-    near = list(map(pts.__getitem__, ok_idx[reach].tolist()))
-    desc_c = stack_rows(list(map(_desc, near)), np.uint8, 32)
+    desc_c = smap.descriptors(cand)
     hd = hamming(kf.descriptors[idx_safe], desc_c[:, None, :])
     hd = np.where(valid, hd, 1 << 20)
     best = hd.argmin(axis=1)

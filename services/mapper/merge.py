@@ -21,15 +21,12 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from operator import attrgetter
 
 import numpy as np
 
 from shared.geometry import Sim3, se3_inv
 
-from .server_map import ServerMap, stack_rows
-
-_pos = attrgetter("pos")
+from .server_map import ServerMap
 
 
 @dataclass
@@ -79,9 +76,7 @@ def move_map(target: ServerMap, source: ServerMap, S_t_s: Sim3) -> FusionResult:
     # one array: positions are replaced, never edited in place.
     pts = list(source.mps.values())
     if pts:
-        P = S_t_s.apply(np.concatenate([p.pos for p in pts]).reshape(-1, 3))
-        for p, row in zip(pts, P, strict=True):
-            p.pos = row
+        source.set_positions(pts, S_t_s.apply(source.positions(list(source.mps))))
     target.absorb_points(source.mps)
     res.moved_mps.extend(source.mps)
     for g, (anchor, T_a_kf) in source.culled.items():
@@ -143,8 +138,7 @@ def points_in_camera(smap: ServerMap, kf_gid: int) -> np.ndarray:
     out = np.full((len(kf.mp), 3), np.nan)
     has = np.nonzero(kf.mp >= 0)[0]
     if len(has):
-        P = stack_rows(list(map(_pos, map(smap.mps.__getitem__, kf.mp[has].tolist()))),
-                       np.float64, 3)  # fmt: skip
+        P = smap.positions(kf.mp[has])
         T = se3_inv(kf.T_m_kf)
         out[has] = P @ T[:3, :3].T + T[:3, 3]
     return out

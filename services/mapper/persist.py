@@ -167,8 +167,7 @@ def load_all(
             ah.removed[kid] = entry
             smap.culled[ah.kf_gid(kid)] = entry
         handlers[agent] = ah
-        for mp in _points(store, agent, st.index):
-            smap.mps[mp.gid] = mp
+        smap.mps.update({mp.gid: mp for mp in _points(store, agent, st.index)})
         kfs_by_map.setdefault(map_id, []).extend(_keyframes(store, agent, ah))
     for map_id, kfs in kfs_by_map.items():
         smap = maps[map_id]
