@@ -7,8 +7,6 @@ its pose, which keeps the down-link small.
 
 from __future__ import annotations
 
-from operator import attrgetter
-
 import numpy as np
 
 from shared import feedback_dump
@@ -19,7 +17,6 @@ from shared.settings import MapperSettings, default_of
 
 from .correction_history import CorrectionHistory
 from .registration import AgentHandler
-from .server_map import stack_rows
 
 # The agent tracks against the points of its newest 10 keyframes (VOParams.local_kfs);
 # a margin covers keyframes in flight.
@@ -74,7 +71,6 @@ MAX_SCALE_STEP = 0.0125
 # before). The steps of the settles gone wrong above came at spreads of 0.24-0.33.
 SCALE_STEP_SPREAD = 0.2
 MAX_SCALE_STEP_NARROW = 0.04
-_pos = attrgetter("pos")
 
 
 def anchor_count(
@@ -219,10 +215,11 @@ def map_to_agent_ref(
         S_l_m = fit_sim3_poses(T_m, np.stack([k.T_l_kf for k in kfs]))
         c_m = T_m[:, :3, 3]
         d_m = np.linalg.norm(c_m - c_m.mean(0), axis=1).sum()
-        obs = [p for p in map(smap.mps.get, ref.mp[ref.mp >= 0][:200].tolist()) if p is not None]
-        depth = (float(np.median(np.linalg.norm(stack_rows(list(map(_pos, obs)), np.float64, 3)
-                                                - ref.T_m_kf[:3, 3], axis=1)))
-                 if obs else np.inf)  # fmt: skip
+        # A keyframe's points are all in the map (its ``mp`` names only points the map
+        # holds), read from the point table.
+        P = smap.positions(ref.mp[ref.mp >= 0][:200])
+        depth = (float(np.median(np.linalg.norm(P - ref.T_m_kf[:3, 3], axis=1)))
+                 if len(P) else np.inf)  # fmt: skip
         # Enough baseline (mean spread >= MIN_SPREAD of the scene depth), and no more than
         # 20 % from the handler's scale (anything further is a broken fit, not drift).
         if (

@@ -106,7 +106,7 @@ class ServerMapPoint:
     def pos(self, v: np.ndarray) -> None:
         self._pos = v
         if self._tab is not None:
-            self._tab.set_pos(self.gid, v)
+            self._tab.set_row(self.gid, "pos", v)
 
     @property
     def descriptor(self) -> np.ndarray:
@@ -116,7 +116,7 @@ class ServerMapPoint:
     def descriptor(self, v: np.ndarray) -> None:
         self._desc = v
         if self._tab is not None:
-            self._tab.set_desc(self.gid, v)
+            self._tab.set_row(self.gid, "desc", v)
 
     def __repr__(self) -> str:
         return (f"ServerMapPoint(gid={self.gid}, pos={self._pos!r}, ref_kf={self.ref_kf}, "
@@ -214,23 +214,15 @@ class PointTable:
         if h is not None and 0 <= i < len(h):
             h[i] = False
 
-    def set_pos(self, g: int, v: np.ndarray) -> None:
+    def set_row(self, g: int, what: str, v: np.ndarray) -> None:
+        """Row ``what`` ("pos" or "desc") of gid ``g`` is now ``v`` (a value that does
+        not fit leaves the row unheld: gathers then read the object)."""
         a, i = split_gid(g)
         h = self._has.get(a)
         if h is None or not 0 <= i < len(h):
             return
         try:
-            self._pos[a][i] = v
-        except (ValueError, TypeError):
-            h[i] = False
-
-    def set_desc(self, g: int, v: np.ndarray) -> None:
-        a, i = split_gid(g)
-        h = self._has.get(a)
-        if h is None or not 0 <= i < len(h):
-            return
-        try:
-            self._desc[a][i] = v
+            (self._pos if what == "pos" else self._desc)[a][i] = v
         except (ValueError, TypeError):
             h[i] = False
 
@@ -399,7 +391,7 @@ class ServerMap:
                 t.set_positions(g[m], np.asarray(P, np.float64)[m])
             else:  # rows of another shape: one by one
                 for p in compress(points, m.tolist()):
-                    t.set_pos(p.gid, p._pos)
+                    t.set_row(p.gid, "pos", p._pos)
 
     # --- keyframes ------------------------------------------------------------------------
     def add_keyframe(self, kf: ServerKeyframe) -> None:
