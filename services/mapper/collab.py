@@ -125,6 +125,7 @@ from .metrics import (
     QUEUE_DEPTH,
     SHED,
 )
+from .overload import BUSY_LOAD
 from .registry import MapRegistry
 from .server_map import ServerMap
 
@@ -248,7 +249,7 @@ class Collaboration:
         self.persist_chunk = 2000  # points per stored slice of a correction
         self.loop_fuse_max = 100  # matched point pairs fused per loop
         self.loop_fuse_busy = 20  # ... while the map's actor is busy (``_fuse_in_slices``)
-        self.busy_load = 0.5
+        self.busy_load = BUSY_LOAD
         self.fuse_slice = 10  # pairs fused per hold of the map's lock
         self.drop_slice = 1000  # outlier observations dropped per hold (_drop_outliers)
         # Poses each optimization request was made from, by (map, version): a correction

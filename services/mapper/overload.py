@@ -60,6 +60,9 @@ from dataclasses import dataclass
 
 LEVELS = ("normal", "poses", "feedback", "background", "keyframes")
 POSES, FEEDBACK, BACKGROUND, KEYFRAMES = 1, 2, 3, 4
+# A map actor registering batches more than this share of its time is busy: its
+# feedback runs at a quarter rate and a loop's point fusion takes smaller slices.
+BUSY_LOAD = 0.5
 
 
 @dataclass

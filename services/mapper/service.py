@@ -81,7 +81,7 @@ from .metrics import (
     SHED,
     TAKEOVERS,
 )
-from .overload import BACKGROUND, FEEDBACK, LEVELS, POSES, Overload
+from .overload import BACKGROUND, BUSY_LOAD, FEEDBACK, LEVELS, POSES, Overload
 from .ownership import Ownership
 from .redundancy import find_redundant
 from .registration import AgentHandler, IngestFailed, IngestResult, MapperParams
@@ -332,7 +332,7 @@ class MapActor:
         t0 = time.monotonic()
         if self._fb_load(t0) > FEEDBACK_SHARE:
             return
-        slow = self.load() > 0.5 or self.svc.level >= FEEDBACK
+        slow = self.load() > BUSY_LOAD or self.svc.level >= FEEDBACK
         if self.svc.level >= FEEDBACK:
             SHED.labels("feedback").inc()
         try:
