@@ -130,38 +130,72 @@ _tab_of = attrgetter("_tab")
 _set_tab = ServerMapPoint._tab.__set__
 _gid_of = attrgetter("gid")
 LOCAL_CAP = 1 << 22  # local ids a table mirrors (an agent's points over a long flight)
+AGENT_CAP = 1 << 16  # agent indices a table mirrors (the store hands them out from 1)
 
 
 class PointTable:
-    """The positions and descriptors of a map's points as arrays, one block per agent
-    index with a row per local id (gids are ``agent_index << ID_BITS | local_id`` and
-    local ids count up from 0 in every flight), so a gather of thousands of gids is a
-    few fancy indexings instead of a dict lookup and an attribute read per point (those
-    were about a third of the mapper's CPU per keyframe at 16 agents: point fusion,
-    feedback chunks and keyframe events each gathered a few thousand points from a dict
-    of 300k objects). A mirror only: the map's dict of points stays the truth, and a
-    gid the table does not hold (not yet mirrored, a local id past ``LOCAL_CAP``)
-    makes a gather return None, so the caller reads the objects instead."""
+    """The positions and descriptors of a map's points as arrays, a block of rows per
+    agent index with a row per local id (gids are ``agent_index << ID_BITS | local_id``
+    and local ids count up from 0 in every flight), all blocks in one flat array, so a
+    gather of thousands of gids is one fancy indexing instead of a dict lookup and an
+    attribute read per point (those were about a third of the mapper's CPU per
+    keyframe at 16 agents: point fusion, feedback chunks and keyframe events each
+    gathered a few thousand points from a dict of 300k objects; a block per agent in
+    arrays of their own cost a pass per agent, 6 % of the mapper at 24 agents). A
+    mirror only: the map's dict of points stays the truth, and a gid the table does not
+    hold (not yet mirrored, a local id past ``LOCAL_CAP``, an agent index past
+    ``AGENT_CAP``) makes a gather return None, so the caller reads the objects."""
 
     def __init__(self) -> None:
-        self._pos: dict[int, np.ndarray] = {}  # agent index -> (n, 3) float64
-        self._desc: dict[int, np.ndarray] = {}  # agent index -> (n, 32) uint8
-        self._has: dict[int, np.ndarray] = {}  # agent index -> (n,) bool
+        self.clear()
 
-    def _block(self, ai: int, li_max: int) -> bool:
-        """Makes the block of agent index ``ai`` hold row ``li_max``; False when it may
-        not (past ``LOCAL_CAP``, or not a gid)."""
-        if ai < 0 or not 0 <= li_max < LOCAL_CAP:
+    def clear(self) -> None:
+        self._pos = np.zeros((0, 3))
+        self._desc = np.zeros((0, 32), np.uint8)
+        self._has = np.zeros(0, bool)
+        self._start = np.zeros(0, np.int64)  # agent index -> its block's first row
+        self._cap = np.zeros(0, np.int64)  # agent index -> its block's rows (0: none)
+        self._used = 0  # rows of the flat arrays given to blocks
+
+    def _rows(self, ai: np.ndarray, li: np.ndarray) -> np.ndarray | None:
+        """Flat rows of (agent index, local id) pairs; None when one is outside every
+        block."""
+        if len(ai) and (ai.min() < 0 or ai.max() >= len(self._start)):
+            return None
+        if (li >= self._cap[ai]).any():  # li >= 0 always: the low bits of a gid
+            return None
+        return self._start[ai] + li
+
+    def _block(self, a: int, li_max: int) -> bool:
+        """Makes the block of agent index ``a`` hold local id ``li_max`` (a new block at
+        the end, twice the size, when it is full); False when it may not."""
+        if not 0 <= a < AGENT_CAP or not 0 <= li_max < LOCAL_CAP:
             return False
-        has = self._has.get(ai)
-        n = 0 if has is None else len(has)
+        if a >= len(self._start):
+            k = a + 1 - len(self._start)
+            self._start = np.concatenate([self._start, np.zeros(k, np.int64)])
+            self._cap = np.concatenate([self._cap, np.zeros(k, np.int64)])
+        n, s0 = int(self._cap[a]), int(self._start[a])
         if li_max < n:
             return True
         m = min(max(2 * n, li_max + 1, 1024), LOCAL_CAP)
-        pos, desc, h = np.zeros((m, 3)), np.zeros((m, 32), np.uint8), np.zeros(m, bool)
+        need = self._used + m
+        if need > len(self._has):
+            size = max(2 * len(self._has), need)
+            pos, desc, has = (
+                np.zeros((size, 3)),
+                np.zeros((size, 32), np.uint8),
+                np.zeros(size, bool),
+            )
+            u = self._used
+            pos[:u], desc[:u], has[:u] = self._pos[:u], self._desc[:u], self._has[:u]
+            self._pos, self._desc, self._has = pos, desc, has
+        s = self._used
         if n:
-            pos[:n], desc[:n], h[:n] = self._pos[ai], self._desc[ai], has
-        self._pos[ai], self._desc[ai], self._has[ai] = pos, desc, h
+            for arr in (self._pos, self._desc, self._has):
+                arr[s : s + n] = arr[s0 : s0 + n]
+            self._has[s0 : s0 + n] = False
+        self._start[a], self._cap[a], self._used = s, m, need
         return True
 
     def bind(self, points: list[ServerMapPoint]) -> None:
@@ -181,88 +215,68 @@ class PointTable:
         g = np.fromiter(map(_gid_of, points), np.int64, len(points))
         P = stack_rows(list(map(_raw_pos, points)), np.float64, 3)
         D = stack_rows(list(map(_raw_desc, points)), np.uint8, 32)
-        if len(P) != len(g) or len(D) != len(g):
-            for p in points:  # a malformed row: one by one, whatever mirrors
+        ai, li = agent_index_of(g), local_id_of(g)
+        ok = len(P) == len(g) and len(D) == len(g)
+        for a in np.unique(ai).tolist() if ok else ():
+            ok = self._block(a, int(li[ai == a].max())) and ok
+        rows = self._rows(ai, li) if ok else None
+        if rows is None:
+            for p in points:  # a malformed row or an id past the caps: whatever mirrors
                 self._put(p)
             return
-        ai, li = agent_index_of(g), local_id_of(g)
-        for a in np.unique(ai).tolist():
-            m = ai == a
-            rows = li[m]
-            if not self._block(a, int(rows.max())):
-                for i in np.nonzero(m)[0].tolist():
-                    self._put(points[i])
-                continue
-            self._pos[a][rows], self._desc[a][rows], self._has[a][rows] = P[m], D[m], True
+        self._pos[rows], self._desc[rows], self._has[rows] = P, D, True
 
     def _put(self, p: ServerMapPoint) -> None:
         a, i = split_gid(p.gid)
         if not self._block(a, i):
             return
+        r = int(self._start[a]) + i
         try:
-            self._pos[a][i], self._desc[a][i] = p._pos, p._desc
+            self._pos[r], self._desc[r] = p._pos, p._desc
         except (ValueError, TypeError):
-            self._has[a][i] = False
+            self._has[r] = False
             return
-        self._has[a][i] = True
+        self._has[r] = True
+
+    def _row(self, g: int) -> int:
+        """The flat row of gid ``g``, or -1 when no block holds it."""
+        a, i = split_gid(g)
+        if 0 <= a < len(self._start) and i < self._cap[a]:
+            return int(self._start[a]) + i
+        return -1
 
     def unbind(self, p: ServerMapPoint) -> None:
         if p._tab is self:
             p._tab = None
-        a, i = split_gid(p.gid)
-        h = self._has.get(a)
-        if h is not None and 0 <= i < len(h):
-            h[i] = False
+        r = self._row(p.gid)
+        if r >= 0:
+            self._has[r] = False
 
     def set_row(self, g: int, what: str, v: np.ndarray) -> None:
         """Row ``what`` ("pos" or "desc") of gid ``g`` is now ``v`` (a value that does
         not fit leaves the row unheld: gathers then read the object)."""
-        a, i = split_gid(g)
-        h = self._has.get(a)
-        if h is None or not 0 <= i < len(h):
+        r = self._row(g)
+        if r < 0:
             return
         try:
-            (self._pos if what == "pos" else self._desc)[a][i] = v
+            (self._pos if what == "pos" else self._desc)[r] = v
         except (ValueError, TypeError):
-            h[i] = False
+            self._has[r] = False
 
     def set_positions(self, g: np.ndarray, P: np.ndarray) -> None:
         ai, li = agent_index_of(g), local_id_of(g)
-        for a in np.unique(ai).tolist():
-            h = self._has.get(a)
-            if h is None:
-                continue
-            m = ai == a
-            rows = li[m]
-            ok = rows < len(h)
-            self._pos[a][rows[ok]] = P[m][ok]
-
-    def clear(self) -> None:
-        self._pos, self._desc, self._has = {}, {}, {}
+        ok = (ai >= 0) & (ai < len(self._start))
+        ok[ok] &= li[ok] < self._cap[ai[ok]]
+        self._pos[self._start[ai[ok]] + li[ok]] = P[ok]
 
     def gather(self, g: np.ndarray, what: str) -> np.ndarray | None:
         """Rows ``what`` ("pos" or "desc") of gids ``g`` (int64), or None when the table
         does not hold every one of them."""
         src = self._pos if what == "pos" else self._desc
-        width, dt = (3, np.float64) if what == "pos" else (32, np.uint8)
-        if len(g) == 0:
-            return np.zeros((0, width), dt)
-        ai, li = agent_index_of(g), local_id_of(g)
-        a0 = int(ai[0])
-        if (ai == a0).all():
-            h = self._has.get(a0)
-            if h is None or li.max() >= len(h) or not h[li].all():
-                return None
-            return src[a0][li]
-        out = np.empty((len(g), width), dt)
-        for a in np.unique(ai).tolist():
-            h = self._has.get(a)
-            m = ai == a
-            rows = li[m]
-            if h is None or rows.max() >= len(h) or not h[rows].all():
-                return None
-            out[m] = src[a][rows]
-        return out
+        rows = self._rows(agent_index_of(g), local_id_of(g))
+        if rows is None or not self._has[rows].all():
+            return None
+        return src[rows]
 
 
 class PointDict(dict):
