@@ -295,9 +295,9 @@ def apply_correction(
     t3 = time.perf_counter()
     ph["rest_s"] = t3 - t2
     for Cr, grp in groups.values():
-        P = smap.positions(np.fromiter(map(_gid, grp), np.int64, len(grp)))
-        smap.set_positions(grp, P @ Cr[:3, :3].T + Cr[:3, 3])
-        res.mps.update(map(_gid, grp))
+        g = np.fromiter(map(_gid, grp), np.int64, len(grp))
+        smap.set_positions(grp, smap.positions(g) @ Cr[:3, :3].T + Cr[:3, 3])
+        res.mps.update(g.tolist())
 
     t4 = time.perf_counter()
     ph["groups_s"] = t4 - t3

@@ -389,23 +389,21 @@ class ServerMap:
                            np.uint8, 32)  # fmt: skip
         return D
 
-    def set_positions(self, points: list[ServerMapPoint], rows) -> None:
-        """``points[i].pos = rows[i]`` for each (``rows``: (N, 3) or a list of (3,)
-        arrays), at C speed and mirrored in one write per table: a correction or merge
-        moves up to 330k points under the map's lock."""
+    def set_positions(self, points: list[ServerMapPoint], P: np.ndarray) -> None:
+        """``points[i].pos = P[i]`` for each ((N, 3) array; each point's position becomes
+        a row view of it), at C speed and mirrored in one write per table: a correction
+        or merge moves up to 330k points under the map's lock."""
+        P = np.asarray(P, np.float64).reshape(-1, 3)
+        if len(P) != len(points):
+            raise ValueError(f"{len(points)} points, {len(P)} positions")
         if not points:
             return
-        deque(map(_set_raw_pos, points, rows), maxlen=0)
+        deque(map(_set_raw_pos, points, P), maxlen=0)
         tabs = list(map(_tab_of, points))
-        P = rows if isinstance(rows, np.ndarray) else stack_rows(list(rows), np.float64, 3)
         g = np.fromiter(map(_gid_of, points), np.int64, len(points))
         for t in {id(t): t for t in tabs if t is not None}.values():
             m = np.fromiter(map(is_, tabs, repeat(t)), bool, len(tabs))
-            if len(P) == len(g):
-                t.set_positions(g[m], np.asarray(P, np.float64)[m])
-            else:  # rows of another shape: one by one
-                for p in compress(points, m.tolist()):
-                    t.set_row(p.gid, "pos", p._pos)
+            t.set_positions(g[m], P[m])
 
     # --- keyframes ------------------------------------------------------------------------
     def add_keyframe(self, kf: ServerKeyframe) -> None:
