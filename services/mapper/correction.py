@@ -101,7 +101,8 @@ class CorrectionPlan:
     snap_kfs: set[int]
     kf_C: list[tuple[int, np.ndarray, np.ndarray]]  # (gid, corrected pose, C) per snapshot kf
     objs: list = field(default_factory=list)  # points taking an optimized position ...
-    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... that position
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ... that position
+    rows: list = field(default_factory=list)  # ... as row views of P (made off the lock)
     planned: set[int] = field(default_factory=set)  # their gids
     rest: list[int] = field(default_factory=list)  # points of the copy that move with a C
     index: dict[int, int] = field(default_factory=dict)  # corrected point gid -> row
@@ -167,7 +168,8 @@ def plan_correction(
         if pause is not None:
             pause()
     pos = np.asarray(corr.mp_pos, np.float64).reshape(-1, 3)
-    plan.rows = pos[np.array(idx, np.int64)] if idx else np.zeros((0, 3))
+    plan.P = pos[np.array(idx, np.int64)] if idx else np.zeros((0, 3))
+    plan.rows = list(plan.P)
     plan.planned = {mp.gid for mp in objs}
     plan.mps_missing = len(gids) - found
     return plan
@@ -261,7 +263,8 @@ def apply_correction(
     if len(plan.rows) != len(plan.objs):
         raise ValueError("a plan's rows and points differ in number")
     ok = list(map(snap_kfs.__contains__, map(_ref_kf, plan.objs)))
-    smap.set_positions(list(compress(plan.objs, ok)), plan.rows[np.array(ok, bool)])
+    smap.set_positions(list(compress(plan.objs, ok)), plan.P[np.array(ok, bool)],
+                       list(compress(plan.rows, ok)))  # fmt: skip
     moved_off = list(map(_gid, compress(plan.objs, map(not_, ok))))
     res.mps = plan.planned  # a plan is applied once
     res.mps.difference_update(moved_off)

@@ -389,19 +389,27 @@ class ServerMap:
                            np.uint8, 32)  # fmt: skip
         return D
 
-    def set_positions(self, points: list[ServerMapPoint], P: np.ndarray) -> None:
+    def set_positions(self, points: list[ServerMapPoint], P: np.ndarray,
+                      rows: list[np.ndarray] | None = None) -> None:  # fmt: skip
         """``points[i].pos = P[i]`` for each ((N, 3) array; each point's position becomes
-        a row view of it), at C speed and mirrored in one write per table: a correction
-        or merge moves up to 330k points under the map's lock."""
+        a row view of it, or ``rows[i]`` when given: views made ahead, off the lock), at C
+        speed and mirrored in one write per table: a correction or merge moves up to 330k
+        points under the map's lock."""
         P = np.asarray(P, np.float64).reshape(-1, 3)
         if len(P) != len(points):
             raise ValueError(f"{len(points)} points, {len(P)} positions")
         if not points:
             return
-        deque(map(_set_raw_pos, points, P), maxlen=0)
+        deque(map(_set_raw_pos, points, P if rows is None else rows), maxlen=0)
         tabs = list(map(_tab_of, points))
         g = np.fromiter(map(_gid_of, points), np.int64, len(points))
-        for t in {id(t): t for t in tabs if t is not None}.values():
+        # The tables at C speed (a comprehension over 60k points cost more than the
+        # writes); a table hashes by identity.
+        held = set(tabs) - {None}
+        if held == {tabs[0]} and None not in tabs:  # all in one table (the usual case)
+            tabs[0].set_positions(g, P)
+            return
+        for t in held:
             m = np.fromiter(map(is_, tabs, repeat(t)), bool, len(tabs))
             t.set_positions(g[m], P[m])
 
