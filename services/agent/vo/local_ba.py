@@ -51,9 +51,16 @@ def local_ba(
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), tight))
     for j, p in points.items():
         values.insert(L(j), gtsam.Point3(*p))
-    for k, j, xy in obs:
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(
-            gtsam.Point2(focal * xy[0], focal * xy[1]), huber, X(k), L(j), cal))  # fmt: skip
+    # The observations as arrays once: the factors take rows of the pixel array (an
+    # Eigen vector each, no Point2 per factor) and the outlier check below is one
+    # vectorized pass; per observation in Python, the two were half of a BA's time
+    # (~100 of 180 ms with ~7,000 observations, cProfile on MH03).
+    kf_of = np.fromiter((k for k, _, _ in obs), np.int64, count=len(obs))
+    mp_of = np.fromiter((j for _, j, _ in obs), np.int64, count=len(obs))
+    xy_all = np.array([xy for _, _, xy in obs], np.float64).reshape(-1, 2)
+    uv = focal * xy_all
+    for i, (k, j) in enumerate(zip(kf_of.tolist(), mp_of.tolist(), strict=True)):
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], huber, X(k), L(j), cal))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iters)
     params.setRelativeErrorTol(1e-4)
@@ -63,9 +70,17 @@ def local_ba(
     out_poses = {k: result.atPose3(X(k)).matrix() for k in poses if k not in fixed}
     out_pts = {j: np.asarray(result.atPoint3(L(j))) for j in points}
     outliers = []
-    for k, j, xy in obs:
-        T = result.atPose3(X(k)).matrix() if k not in fixed else poses[k]
-        Xc = T[:3, :3].T @ (out_pts[j] - T[:3, 3])
-        if Xc[2] <= 0 or np.linalg.norm(Xc[:2] / Xc[2] - xy) * focal > outlier_px:
-            outliers.append((k, j))
+    if len(obs):
+        kf_ids = list(poses)
+        T_all = np.stack([out_poses.get(k, poses[k]) for k in kf_ids])
+        row = {k: r for r, k in enumerate(kf_ids)}
+        T = T_all[np.fromiter((row[k] for k in kf_of.tolist()), np.int64, count=len(obs))]
+        P = np.stack([out_pts[j] for j in mp_of.tolist()])
+        # Xc = R^T (p - t), per observation
+        Xc = np.einsum("nji,nj->ni", T[:, :3, :3], P - T[:, :3, 3])
+        z = Xc[:, 2]
+        safe = np.where(z > 0, z, 1.0)
+        err = np.linalg.norm(Xc[:, :2] / safe[:, None] - xy_all, axis=1) * focal
+        bad = np.nonzero((z <= 0) | (err > outlier_px))[0]
+        outliers = list(zip(kf_of[bad].tolist(), mp_of[bad].tolist(), strict=True))
     return BAResult(out_poses, out_pts, outliers, opt.iterations(), e0, graph.error(result))
