@@ -56,9 +56,9 @@ def local_ba(
     # vectorized pass. Per observation in Python the two cost ~12 ms of a keyframe's
     # 163 ms of mapping on MH03 (bench/bench_async_ba.py; cProfile, which taxes each
     # Python call, had made them look like half); GTSAM's solve is the rest.
-    kf_of = np.fromiter((k for k, _, _ in obs), np.int64, count=len(obs))
-    mp_of = np.fromiter((j for _, j, _ in obs), np.int64, count=len(obs))
-    xy_all = np.array([xy for _, _, xy in obs], np.float64).reshape(-1, 2)
+    ks, js, xys = zip(*obs, strict=True) if obs else ((), (), ())
+    kf_of, mp_of = np.array(ks, np.int64), np.array(js, np.int64)
+    xy_all = np.array(xys, np.float64).reshape(-1, 2)
     uv = focal * xy_all
     for i, (k, j) in enumerate(zip(kf_of.tolist(), mp_of.tolist(), strict=True)):
         graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], huber, X(k), L(j), cal))
