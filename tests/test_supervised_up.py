@@ -148,6 +148,28 @@ def _acked(runner) -> set[int]:
             continue
 
 
+def _restarted(up: Up, name: str, old_pid: int, t_kill: float, timeout: float = 30.0,
+               ready=lambda: True) -> float | None:  # fmt: skip
+    """Seconds from ``t_kill`` until the supervisor runs ``name`` again under a new pid
+    (and ``ready()`` says it serves); None if not within ``timeout``."""
+    while time.monotonic() - t_kill < timeout:
+        if up.children().get(name) not in (None, old_pid) and ready():
+            return time.monotonic() - t_kill
+        time.sleep(0.05)
+    return None
+
+
+def _acks_resumed(runner, t_kill: float, timeout: float = 40.0) -> float | None:
+    """Seconds from ``t_kill`` until the agent gets an ack beyond those it has now;
+    None if none comes within ``timeout``."""
+    n = len(_acked(runner))
+    while time.monotonic() - t_kill < timeout:
+        if len(_acked(runner)) > n:
+            return time.monotonic() - t_kill
+        time.sleep(0.1)
+    return None
+
+
 def _port_answers(port: int) -> bool:
     import socket
 
@@ -175,20 +197,12 @@ def test_kill_9_of_the_mapper_restarts_it_and_loses_no_acked_keyframe(tmp_path):
         assert len(acked_before) >= 15
         os.kill(before["mapper"], signal.SIGKILL)
         t_kill = time.monotonic()
-        back = None
-        while time.monotonic() - t_kill < 30:
-            now = up.children()
-            if now.get("mapper") not in (None, before["mapper"]) and _port_answers(up.mapper_port):
-                back = time.monotonic() - t_kill
-                break
-            time.sleep(0.1)
+        back = _restarted(up, "mapper", before["mapper"], t_kill,
+                          ready=lambda: _port_answers(up.mapper_port))  # fmt: skip
         assert back is not None and back <= 10.0, f"mapper back after {back} s"
         # Keyframes made after the kill are acked again: the new mapper took over.
-        n_kill = len(_acked(runner))
-        while len(_acked(runner)) <= n_kill and time.monotonic() - t_kill < 40:
-            time.sleep(0.1)
-        resumed = time.monotonic() - t_kill
-        assert len(_acked(runner)) > n_kill, "no ack after the restart"
+        resumed = _acks_resumed(runner, t_kill)
+        assert resumed is not None, "no ack after the restart"
         thread.join(180)
         stats = out["stats"]
         others = {k: v for k, v in before.items() if k != "mapper"}
