@@ -3,8 +3,12 @@
 Poses are gtsam.Pose3 (camera to world), points Point3, measurements the
 keypoints' undistorted coordinates scaled by the focal length (a Cal3_S2 with the
 principal point at 0), with a Huber kernel. The two oldest window keyframes, and
-every keyframe outside the window that sees a window point, are held by tight
-priors: they fix the gauge, scale included.
+every keyframe outside the window that sees a window point, are held fixed: they fix
+the gauge, scale included. A fixed keyframe is no variable at all: its observations
+are GTSAM's TriangulationFactor (a projection from a known camera onto the point).
+As variables held by tight priors (before), the ~26 fixed keyframes of a job went
+through every elimination: on 58 jobs of MH03 (~8,900 observations each) a BA took
+111 ms that way and 67 ms this way, poses equal to 1e-8 (same iterations).
 """
 
 from __future__ import annotations
@@ -44,11 +48,12 @@ def local_ba(
         gtsam.noiseModel.mEstimator.Huber.Create(1.345),
         gtsam.noiseModel.Isotropic.Sigma(2, sigma_px),
     )
-    tight = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+    cams = {}
     for k, T in poses.items():
-        values.insert(X(k), gtsam.Pose3(T))
         if k in fixed:
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T), tight))
+            cams[k] = gtsam.PinholeCameraCal3_S2(gtsam.Pose3(T), cal)
+        else:
+            values.insert(X(k), gtsam.Pose3(T))
     for j, p in points.items():
         values.insert(L(j), gtsam.Point3(*p))
     # The observations as arrays once: the factors take rows of the pixel array (an
@@ -61,7 +66,11 @@ def local_ba(
     xy_all = np.array(xys, np.float64).reshape(-1, 2)
     uv = focal * xy_all
     for i, (k, j) in enumerate(zip(kf_of.tolist(), mp_of.tolist(), strict=True)):
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], huber, X(k), L(j), cal))
+        cam = cams.get(k)
+        if cam is None:
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv[i], huber, X(k), L(j), cal))
+        else:
+            graph.add(gtsam.TriangulationFactorCal3_S2(cam, uv[i], huber, L(j)))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iters)
     params.setRelativeErrorTol(1e-4)
