@@ -20,6 +20,10 @@ in dumps older than the correction history only the chunks that carried one).
 The agent's reported pose does not feed back into the map (it publishes its VO pose),
 so a replay is what a live run with the same map would have reported.
 
+``--estimates AGENT`` lists instead, per map estimate of that agent's correction, how far
+the VO, the estimate and what was sent are from the same rule on the ground truth at
+the newest keyframe.
+
 ``--windows 10`` adds, per agent and 10 s of its flight, the error of each of these and
 of the oracle (the same rule on the ground truth): where along the flight the map's
 estimate, rather than the rule, put the reported pose above the VO.
@@ -42,7 +46,7 @@ from common import write_report  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.correction_history import CorrectionHistory  # noqa: E402
-from services.mapper.feedback import estimate_from_poses  # noqa: E402
+from services.mapper.feedback import estimate_from_poses, fit_frame  # noqa: E402
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
 from shared.feedback_dump import load  # noqa: E402
@@ -175,6 +179,45 @@ def windows(a: dict, b: dict, gt: Trajectory, seconds: float) -> list[tuple]:
     return rows
 
 
+def estimates(a: dict, b: dict) -> list[tuple]:
+    """Per distinct map estimate of agent ``a``'s correction (in the order the mapper
+    computed them): its newest keyframe's seconds into the flight and id, its newest settled
+    one, and in mm at its newest keyframe the error of the VO, of the map's estimate
+    and of what was sent (the part beyond the scatter), each against the same rule on
+    the ground truth (``b``: :func:`with_truth`), converted to metres by the truth's
+    frame fit. Where the estimate is off by more than the VO, the map state, not the
+    rule, is what would cost the agent."""
+    st0 = a["vo"]["stamps"][0]
+    hist = CorrectionHistory()
+    rows, prev = [], None
+    for r, ro in zip(a["all_fcs"], b["all_fcs"], strict=True):
+        if r["T_l"] is None:
+            continue
+        k = Settings().mapper.feedback_correction_kfs
+        S = estimate_from_poses(r["T_l"], r["T_m"], r["optimized"], k)
+        S_o = estimate_from_poses(ro["T_l"], ro["T_m"], ro["optimized"], k)
+        A_o = fit_frame(ro["T_l"], ro["T_m"], ro["optimized"])
+        if S is None or S_o is None or A_o is None:
+            continue
+        if prev is not None and np.abs(S.matrix() - prev).max() <= 1e-12:
+            continue
+        prev = S.matrix()
+        p = r["T_l"][-1, :3, 3]
+        hist.add(S, p)
+        sent = hist.significant(S, p)
+        truth = S_o.apply(p[None])[0]
+
+        def off(X, p=p, truth=truth, m=A_o.s) -> float:
+            return float("nan") if X is None else 1e3 * m * float(
+                np.linalg.norm(X.apply(p[None])[0] - truth))  # fmt: skip
+
+        settled = r["ids"][np.asarray(r["optimized"], bool)]
+        rows.append(((int(r["stamps"][-1]) - st0) * 1e-9, int(r["ids"][-1]),
+                     int(settled[-1]) if len(settled) else -1,
+                     off(Sim3.identity()), off(S), off(sent)))  # fmt: skip
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dump")
@@ -185,7 +228,20 @@ def main() -> int:
     ap.add_argument("--windows", type=float, default=0.0, metavar="S",
                     help="also per S seconds of each flight: VO, recorded, replayed and "
                     "oracle error (where the map's estimate cost the agent)")  # fmt: skip
+    ap.add_argument("--estimates", default="", metavar="AGENT",
+                    help="only list, per map estimate of AGENT's correction, the error "
+                    "at its newest keyframe of the VO, the estimate and what was sent")  # fmt: skip
     args = ap.parse_args()
+    if args.estimates:
+        a = runs(args.dump)[args.estimates]
+        b = copy.deepcopy(a)
+        with_truth(b, read_tum(Path(args.out) / f"{args.estimates}_gt.tum"))
+        print(
+            f"{'t_s':>7} {'kf':>5} {'settled':>7} {'vo_mm':>7} {'estimate_mm':>11} {'sent_mm':>8}"
+        )
+        for t, kf, sk, e_vo, e_est, e_sent in estimates(a, b):
+            print(f"{t:7.1f} {kf:5d} {sk:7d} {e_vo:7.2f} {e_est:11.2f} {e_sent:8.2f}")
+        return 0
     rows, sums, report = [], np.zeros(3), []
     recorded = runs(args.dump)
     # --windows replays on the map's states and on the truth: a second copy for the
