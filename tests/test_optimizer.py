@@ -489,3 +489,37 @@ def test_vo_edges_hold_a_windows_poorly_seen_keyframes_to_the_vo():
     assert held.stats["ba_odometry_edges"] == len(ks)
     assert err(held) < 0.7 * err(plain), (err(plain), err(held))
     print(f"free keyframes' error {1e3 * err(plain):.2f} -> {1e3 * err(held):.2f} mm-units")
+
+
+def test_windowed_ba_holds_its_fixed_keyframes_as_known_cameras():
+    """A windowed BA (several fixed keyframes, VO edges from the last fixed one into the
+    window): its fixed keyframes enter as known cameras, not variables under priors --
+    except the one a VO edge ties to a free keyframe -- and the free keyframes and points
+    come out where the slower graph with every fixed keyframe a variable puts them."""
+    snap, T, P, _ = _ba_scene(seed=3)
+    n_fixed = 12
+    T0 = snap.T_m_kf.copy()
+    T0[:n_fixed] = T[:n_fixed]
+    ks = np.arange(n_fixed, len(T))
+    pairs = np.column_stack([snap.kf_gids[ks - 1], snap.kf_gids[ks]])
+    rel = np.array([se3_inv(T[k - 1]) @ T[k] for k in ks])
+    sig = np.column_stack([np.full(len(ks), np.deg2rad(0.3)),
+                           0.05 * np.linalg.norm(rel[:, :3, 3], axis=1) + 0.002])  # fmt: skip
+    win = replace(snap, T_m_kf=T0, fixed_gids=snap.kf_gids[:n_fixed].copy(),
+                  odo=pairs, T_odo=rel, odo_sigma=sig)  # fmt: skip
+    known = bundle_adjust(win, BAParams(max_iters=30))
+    held = bundle_adjust(win, BAParams(max_iters=30, known_cameras=False))
+    assert known.stats["ba_known_cameras"] == n_fixed - 1  # the last is tied to the window
+    assert held.stats["ba_known_cameras"] == 0
+    assert known.stats["ba_odometry_edges"] == held.stats["ba_odometry_edges"] == len(ks)
+    assert np.array_equal(known.T_m_kf[: n_fixed - 1], T0[: n_fixed - 1])
+    assert np.abs(known.T_m_kf - held.T_m_kf).max() < 1e-5
+    assert np.abs(known.mp_pos - held.mp_pos).max() < 1e-5
+    # It did move the free keyframes towards the truth (the test is not of two no-ops).
+    d0 = np.linalg.norm(T0[n_fixed:, :3, 3] - T[n_fixed:, :3, 3], axis=1).mean()
+    d1 = np.linalg.norm(known.T_m_kf[n_fixed:, :3, 3] - T[n_fixed:, :3, 3], axis=1).mean()
+    assert d1 < 0.3 * d0, (d0, d1)
+    # A lone fixed keyframe (a global BA's gauge) keeps its prior and range factor.
+    one = bundle_adjust(replace(win, fixed_gids=snap.kf_gids[:1].copy(), odo=None,
+                                T_odo=None, odo_sigma=None), BAParams(max_iters=2))  # fmt: skip
+    assert one.stats["ba_known_cameras"] == 0 and one.stats["ba_gauge"]["range_to"] is not None

@@ -72,6 +72,10 @@ class BAParams:
     diagonal_damping: bool = True  # LM damping scaled by the Hessian's diagonal (as g2o)
     lambda_initial: float = 1e-5
     linear_solver: str = "MULTIFRONTAL_CHOLESKY"  # GTSAM's name; no CHOLMOD in the wheel
+    # A windowed BA's fixed keyframes as known cameras rather than variables under
+    # tight priors (:func:`_known_cameras`); False: as variables (the same result,
+    # slower; tests compare the two).
+    known_cameras: bool = True
 
     @classmethod
     def from_settings(cls, o: OptimizerSettings) -> BAParams:
@@ -176,11 +180,41 @@ def _optimizer(graph, values, ordering, p: BAParams) -> gtsam.LevenbergMarquardt
     return gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
 
 
+def _known_cameras(snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray,
+                   fixed: list[int], use: bool = True) -> np.ndarray:  # fmt: skip
+    """Per keyframe: held fixed as a known camera, no variable at all (its observations
+    are TriangulationFactors on the points). Only where the caller fixes several
+    keyframes (a windowed BA: the settled ones around the window); a lone gauge
+    keyframe keeps its prior and range factor. A fixed keyframe tied to a free one by
+    a VO edge stays a variable under its prior, so the edge is kept as it is.
+
+    As variables under tight priors the fixed keyframes went through every elimination:
+    in a windowed BA they are most of the cameras (e.g. 60 of 84), and the reduced
+    camera system grows with them (the agent's local BA, services/agent/vo/local_ba.py,
+    went from 111 to 67 ms per job the same way)."""
+    known = np.zeros(snap.n_kf, bool)
+    if len(fixed) <= 1 or not use:
+        return known
+    known[fixed] = True
+    known &= kf_ok
+    free = kf_ok & ~known
+    if snap.odo is not None and len(snap.odo):
+        for a, b in snap.odo.tolist():
+            ia, ib = idx.get(int(a)), idx.get(int(b))
+            if ia is None or ib is None:
+                continue
+            if free[ia] or free[ib]:
+                known[ia] = known[ib] = False
+    return known
+
+
 def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray,
                   cam_key: np.ndarray) -> int:  # fmt: skip
     """The request's VO relative-pose edges (a windowed BA's, see
-    services/mapper/capture.py ``window_odometry``) between keyframes both in the graph,
-    under a Huber kernel at the 6-DoF 95 % chi2; how many were added."""
+    services/mapper/capture.py ``window_odometry``) between keyframes both in the graph
+    as variables, under a Huber kernel at the 6-DoF 95 % chi2; how many were added. An
+    edge with a known camera (:func:`_known_cameras`) ties two fixed keyframes: a
+    constant."""
     if snap.odo is None or not len(snap.odo):
         return 0
     huber = gtsam.noiseModel.mEstimator.Huber.Create(float(np.sqrt(CHI2_6DOF_95)))
@@ -189,6 +223,8 @@ def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.n
                                    strict=True):  # fmt: skip
         ia, ib = idx.get(int(a)), idx.get(int(b))
         if ia is None or ib is None or not (kf_ok[ia] and kf_ok[ib]):
+            continue
+        if cam_key[ia] < 0 or cam_key[ib] < 0:
             continue
         noise = gtsam.noiseModel.Robust.Create(
             huber, gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, st, st, st]))
@@ -212,15 +248,18 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
     fixed = [idx[int(g)] for g in snap.fixed_gids] or ([0] if K else [])
     cam = np.nonzero(kf_ok)[0]
     pts = np.nonzero(mp_ok)[0]
-    # Keys: cameras 0..Kb-1, points Kb.. (small integers survive the float vector).
+    known = _known_cameras(snap, idx, kf_ok, fixed, p.known_cameras)
+    var = cam[~known[cam]]
+    # Keys: variable cameras 0..Kv-1, points Kv.. (small integers survive the float
+    # vector); a known camera has no key.
     cam_key = np.full(K, -1, np.int64)
-    cam_key[cam] = np.arange(len(cam))
+    cam_key[var] = np.arange(len(var))
     pt_key = np.full(M, -1, np.int64)
-    pt_key[pts] = len(cam) + np.arange(len(pts))
+    pt_key[pts] = len(var) + np.arange(len(pts))
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    for i in cam.tolist():
+    for i in var.tolist():
         values.insert(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]))
     for j, P in zip(pts.tolist(), snap.mp_pos[pts], strict=True):
         values.insert(int(pt_key[j]), P)
@@ -246,12 +285,21 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
     insert = gtsam.utilities.insertProjectionFactors
     for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
         o = sel[a]
-        insert(graph, int(cam_key[snap.obs_kf[o]]), J_all[a:b], Z_all[:, a:b],
-               models[int(oct_all[o])], cal)  # fmt: skip
+        k = int(snap.obs_kf[o])
+        model = models[int(oct_all[o])]
+        if not known[k]:
+            insert(graph, int(cam_key[k]), J_all[a:b], Z_all[:, a:b], model, cal)
+            continue
+        # No insert utility for these: one factor per observation from Python.
+        camera = gtsam.PinholeCameraCal3_S2(gtsam.Pose3(snap.T_m_kf[k]), cal)
+        zs = Z_all[:, a:b].T
+        for j, z in zip(J_all[a:b].astype(np.int64).tolist(), zs, strict=True):
+            graph.add(gtsam.TriangulationFactorCal3_S2(camera, z, model, j))
 
     prior = gtsam.noiseModel.Isotropic.Sigma(6, p.prior_sigma)
     for i in fixed:
-        graph.add(gtsam.PriorFactorPose3(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]), prior))
+        if not known[i]:
+            graph.add(gtsam.PriorFactorPose3(int(cam_key[i]), gtsam.Pose3(snap.T_m_kf[i]), prior))
     partner = _gauge_partner(snap, fixed[0], kf_ok, obs_ok) if len(fixed) == 1 else -1
     if partner >= 0:
         d0 = float(np.linalg.norm(snap.T_m_kf[partner, :3, 3] - snap.T_m_kf[fixed[0], :3, 3]))
@@ -265,7 +313,7 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
     t_build = time.perf_counter() - t0
 
     rp0 = reprojection(snap.T_m_kf, snap.mp_pos, snap)
-    ordering = _ordering(graph, cam_key[cam].tolist(), p.ordering)
+    ordering = _ordering(graph, cam_key[var].tolist(), p.ordering)
     opt = _optimizer(graph, values, ordering, p)
     e0 = opt.error()
     t_opt = time.perf_counter()
@@ -303,10 +351,10 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
 
     T_new = snap.T_m_kf.copy()
     pos_new = snap.mp_pos.copy()
-    if len(cam):
+    if len(var):
         P = gtsam.utilities.extractPose3(result)  # rows in key order: R row-major, t
-        T_new[cam, :3, :3] = P[:, :9].reshape(-1, 3, 3)
-        T_new[cam, :3, 3] = P[:, 9:]
+        T_new[var, :3, :3] = P[:, :9].reshape(-1, 3, 3)
+        T_new[var, :3, 3] = P[:, 9:]
     if len(pts):
         pos_new[pts] = gtsam.utilities.extractPoint3(result)
     # Points left out (too little parallax, one observation) ride rigidly with their
@@ -339,6 +387,7 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
         "ba_rmse_px_initial": rmse(rp0.err_px, inl & np.isfinite(rp0.err_px)),
         "ba_rmse_px_final": rmse(rp1.err_px, inl),
         "ba_kfs": int(len(cam)),
+        "ba_known_cameras": int(len(cam) - len(var)),
         "ba_points": int(len(pts)),
         "ba_observations": int(obs_ok.sum()),
         "ba_outliers": int(out.sum()),
