@@ -11,8 +11,10 @@ plus a tight ``RangeFactorPose3`` holding its distance to one reference keyframe
 (the one sharing most points with it) -- one scalar for the scale. That is the
 minimal gauge: fixing a second full pose as well would remove 5 more DoF that are
 not gauge and bend the map near those two keyframes towards their pre-BA relative
-pose. When the caller names several fixed keyframes, each gets a full prior and no
-range factor is added (the caller asked for them to stay).
+pose. When the caller names several fixed keyframes (a windowed BA) they stay exactly
+where they are, no range factor is added, and they are known cameras rather than
+variables: each of their observations is a ``TriangulationFactorCal3_S2`` on the point
+alone (:func:`_known_cameras`).
 
 Graph building is where Python costs: factors are inserted per (keyframe, octave)
 group through ``gtsam.utilities.insertProjectionFactors`` (one C++ loop per group)
@@ -208,7 +210,7 @@ def _known_cameras(snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray
     return known
 
 
-def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray,
+def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int],
                   cam_key: np.ndarray) -> int:  # fmt: skip
     """The request's VO relative-pose edges (a windowed BA's, see
     services/mapper/capture.py ``window_odometry``) between keyframes both in the graph
@@ -222,9 +224,8 @@ def _add_odometry(graph, snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.n
     for (a, b), T, (sr, st) in zip(snap.odo.tolist(), snap.T_odo, snap.odo_sigma.tolist(),
                                    strict=True):  # fmt: skip
         ia, ib = idx.get(int(a)), idx.get(int(b))
-        if ia is None or ib is None or not (kf_ok[ia] and kf_ok[ib]):
-            continue
-        if cam_key[ia] < 0 or cam_key[ib] < 0:
+        # Not a variable: left out of the graph, or a known camera.
+        if ia is None or ib is None or cam_key[ia] < 0 or cam_key[ib] < 0:
             continue
         noise = gtsam.noiseModel.Robust.Create(
             huber, gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, st, st, st]))
@@ -309,7 +310,7 @@ def bundle_adjust(snap: OptimizeRequest, params: BAParams | None = None) -> Corr
                 gtsam.noiseModel.Isotropic.Sigma(1, p.range_sigma_rel * d0)))  # fmt: skip
         else:
             partner = -1
-    n_odo = _add_odometry(graph, snap, idx, kf_ok, cam_key)
+    n_odo = _add_odometry(graph, snap, idx, cam_key)
     t_build = time.perf_counter() - t0
 
     rp0 = reprojection(snap.T_m_kf, snap.mp_pos, snap)
