@@ -190,10 +190,10 @@ def estimates(a: dict, b: dict) -> list[tuple]:
     st0 = a["vo"]["stamps"][0]
     hist = CorrectionHistory()
     rows, prev = [], None
+    k = Settings().mapper.feedback_correction_kfs
     for r, ro in zip(a["all_fcs"], b["all_fcs"], strict=True):
         if r["T_l"] is None:
             continue
-        k = Settings().mapper.feedback_correction_kfs
         S = estimate_from_poses(r["T_l"], r["T_m"], r["optimized"], k)
         S_o = estimate_from_poses(ro["T_l"], ro["T_m"], ro["optimized"], k)
         A_o = fit_frame(ro["T_l"], ro["T_m"], ro["optimized"])
