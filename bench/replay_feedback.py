@@ -188,23 +188,20 @@ def estimates(a: dict, b: dict) -> list[tuple]:
     frame fit. Where the estimate is off by more than the VO, the map state, not the
     rule, is what would cost the agent."""
     st0 = a["vo"]["stamps"][0]
-    hist = CorrectionHistory()
+    # Every map state feeds the history, as on the server (:func:`recompute`).
+    hist, hist_o = CorrectionHistory(), CorrectionHistory()
     rows, prev = [], None
-    k = Settings().mapper.feedback_correction_kfs
     for r, ro in zip(a["all_fcs"], b["all_fcs"], strict=True):
-        if r["T_l"] is None:
-            continue
-        S = estimate_from_poses(r["T_l"], r["T_m"], r["optimized"], k)
-        S_o = estimate_from_poses(ro["T_l"], ro["T_m"], ro["optimized"], k)
-        A_o = fit_frame(ro["T_l"], ro["T_m"], ro["optimized"])
+        sent = current(r, hist)
+        current(ro, hist_o)
+        S, S_o = r.get("_estimate"), ro.get("_estimate")
+        A_o = None if ro["T_l"] is None else fit_frame(ro["T_l"], ro["T_m"], ro["optimized"])
         if S is None or S_o is None or A_o is None:
             continue
         if prev is not None and np.abs(S.matrix() - prev).max() <= 1e-12:
             continue
         prev = S.matrix()
         p = r["T_l"][-1, :3, 3]
-        hist.add(S, p)
-        sent = hist.significant(S, p)
         truth = S_o.apply(p[None])[0]
 
         def off(X, p=p, truth=truth, m=A_o.s) -> float:

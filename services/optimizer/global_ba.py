@@ -197,8 +197,7 @@ def _known_cameras(snap: OptimizeRequest, idx: dict[int, int], kf_ok: np.ndarray
     known = np.zeros(snap.n_kf, bool)
     if len(fixed) <= 1 or not use:
         return known
-    known[fixed] = True
-    known &= kf_ok
+    known[fixed] = True  # _select keeps every fixed keyframe in the graph
     free = kf_ok & ~known
     if snap.odo is not None and len(snap.odo):
         for a, b in snap.odo.tolist():
