@@ -24,6 +24,11 @@ so a replay is what a live run with the same map would have reported.
 the VO, the estimate and what was sent are from the same rule on the ground truth at
 the newest keyframe.
 
+``--oracle`` replays the rule with the ground truth in place of the map's poses,
+``--final-map`` with the map's own final poses (the last state recorded): the second
+is what a map already settled at the time would have given, so the gap between it and
+the live run is what the map did not yet know when each correction was made.
+
 ``--windows 10`` adds, per agent and 10 s of its flight, the error of each of these and
 of the oracle (the same rule on the ground truth): where along the flight the map's
 estimate, rather than the rule, put the reported pose above the VO.
@@ -132,6 +137,29 @@ def with_truth(a: dict, gt: Trajectory) -> None:
             r.pop("_estimate", None)
 
 
+def with_final_map(a: dict) -> int:
+    """Put the agent's last recorded map state's poses in place of each earlier state's
+    (``--final-map``): the same keyframes, settled at the same times, but where the map
+    put them in the end, after every later optimization. Against the live run this
+    separates what the map knew when a correction was made from what the rule does with
+    a settled map. A keyframe the map dropped before the end keeps the pose it had then;
+    returns how many states held one."""
+    states = [r for r in a["all_fcs"] if r["T_l"] is not None]
+    if not states:
+        return 0
+    last = states[-1]
+    at = {int(i): k for k, i in enumerate(last["ids"])}
+    partial = 0
+    for r in states:
+        ix = np.array([at.get(int(i), -1) for i in r["ids"]])
+        have = ix >= 0
+        partial += int(not have.all())
+        r["T_m"] = r["T_m"].copy()
+        r["T_m"][have] = last["T_m"][ix[have]]
+        r.pop("_estimate", None)
+    return partial
+
+
 def replay(a: dict, fc=None) -> np.ndarray:
     """The agent's reported poses, frame by frame: the chunks offered to ReportedPose
     before the frame they arrived ahead of; ``fc(record)`` recomputes each correction
@@ -222,6 +250,9 @@ def main() -> int:
     ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
     ap.add_argument("--oracle", action="store_true",
                     help="ground truth in place of the map's keyframe poses")  # fmt: skip
+    ap.add_argument("--final-map", action="store_true",
+                    help="the last recorded map state's poses in place of every earlier "
+                    "state's (what a settled map would have given)")  # fmt: skip
     ap.add_argument("--windows", type=float, default=0.0, metavar="S",
                     help="also per S seconds of each flight: VO, recorded, replayed and "
                     "oracle error (where the map's estimate cost the agent)")  # fmt: skip
@@ -257,6 +288,9 @@ def main() -> int:
                                                 zip(rms, (7, 9, 8, 7), strict=True)))  # fmt: skip
         if args.oracle:
             with_truth(a, gt)
+        elif args.final_map:
+            n = with_final_map(a)
+            print(f"{ag}: {n} map states held keyframes the final one had dropped")
 
         def err(T, st=st, gt=gt) -> float:
             return ate(Trajectory(st, T), gt).rmse
@@ -282,6 +316,7 @@ def main() -> int:
         data = {
             "dump": str(args.dump),
             "oracle": args.oracle,
+            "final_map": args.final_map,
             "run_out": str(args.out),
             "agents": report,
             "vo_sum_m": sums[0],
