@@ -348,6 +348,25 @@ def test_oracle_replay_puts_the_truth_in_place_of_the_map():
     assert e_est < 0.15 * e_vo, (e_est, e_vo)
 
 
+def test_final_map_replay_puts_the_last_states_poses_in_every_earlier_one():
+    """replay_feedback --final-map: every earlier state takes the last state's pose of each
+    keyframe it holds; a keyframe the last state no longer has keeps its own, and the
+    cached estimate is dropped so it is recomputed."""
+    rf = _replay_module()
+    _, T_true = _flight(60)
+    ids = np.arange(60)
+    early = {"ids": ids[:40], "T_l": T_true[:40], "T_m": np.repeat(np.eye(4)[None], 40, 0),
+             "_estimate": None}  # fmt: skip
+    keep = ids != 7  # the map dropped keyframe 7 before the end
+    last = {"ids": ids[keep], "T_l": T_true[keep], "T_m": T_true[keep] * 2.0}
+    a = {"all_fcs": [early, {"T_l": None}, last]}
+    assert rf.with_final_map(a) == 1
+    np.testing.assert_allclose(early["T_m"][keep[:40]], T_true[:40][keep[:40]] * 2.0)
+    np.testing.assert_allclose(early["T_m"][7], np.eye(4))
+    assert "_estimate" not in early
+    np.testing.assert_allclose(last["T_m"], T_true[keep] * 2.0)
+
+
 def test_replay_computes_what_the_server_sends():
     """bench/replay_feedback.py replays a recorded run from the mapper's arrays (no server
     map per record): each correction must be the one frame_correction sends from a
