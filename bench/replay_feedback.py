@@ -29,6 +29,10 @@ the newest keyframe.
 is what a map already settled at the time would have given, so the gap between it and
 the live run is what the map did not yet know when each correction was made.
 
+``--maturity`` lists instead, per agent, how far each state's settled keyframes were from
+where the last state put them, by rank back from the newest settled one (the ones a
+correction is fitted on).
+
 ``--windows 10`` adds, per agent and 10 s of its flight, the error of each of these and
 of the oracle (the same rule on the ground truth): where along the flight the map's
 estimate, rather than the rule, put the reported pose above the VO.
@@ -55,7 +59,7 @@ from services.mapper.feedback import estimate_from_poses, fit_frame  # noqa: E40
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
 from shared.feedback_dump import load  # noqa: E402
-from shared.geometry import Sim3  # noqa: E402
+from shared.geometry import Sim3, umeyama  # noqa: E402
 from shared.ids import gid  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 from shared.trajectory import Trajectory, aligned_errors, ate, read_tum  # noqa: E402
@@ -243,6 +247,43 @@ def estimates(a: dict, b: dict) -> list[tuple]:
     return rows
 
 
+# Ranks counted back from an agent's newest settled keyframe (--maturity).
+RANKS = (0, 5, 10, 20, 40, 80, 160)
+
+
+def maturity(a: dict, gt: Trajectory, every: int = 3) -> list[tuple[str, float, int]]:
+    """How far the settled keyframes of each recorded map state were from where the last
+    state put them, by rank back from the newest settled one (RANKS): per bucket the RMS
+    in metres (each state aligned onto the last by a similarity over the keyframes both
+    hold; map units to metres by the last state's fit onto the truth), and how many.
+    Every ``every``-th state is looked at. The newest settled keyframes are what each
+    correction is fitted on (feedback.fit_settled)."""
+    states = [r for r in a["all_fcs"] if r["T_l"] is not None]
+    if not states:
+        return []
+    last = states[-1]
+    at = {int(i): k for k, i in enumerate(last["ids"])}
+    Q_all = last["T_m"][:, :3, 3]
+    i = np.clip(np.searchsorted(gt.stamps_ns, last["stamps"]), 0, len(gt) - 1)
+    to_m = umeyama(Q_all, gt.poses[i, :3, 3]).s
+    edges = (*RANKS, np.inf)
+    sq: list[list[float]] = [[] for _ in RANKS]
+    for r in states[:-1:every]:
+        sett = np.asarray(r["optimized"], bool)
+        ix = np.array([at.get(int(g), -1) for g in r["ids"][sett]])
+        have = ix >= 0
+        if have.sum() < 8:
+            continue
+        P = r["T_m"][sett][have, :3, 3]
+        Q = Q_all[ix[have]]
+        d = np.linalg.norm(umeyama(P, Q).apply(P) - Q, axis=1) * to_m
+        rank = np.arange(len(sett[sett]))[::-1][have]
+        for b in range(len(RANKS)):
+            sq[b].extend((d[(rank >= edges[b]) & (rank < edges[b + 1])] ** 2).tolist())
+    return [(f"{edges[b]:g}-{edges[b + 1]:g}", float(np.sqrt(np.mean(x))) if x else float("nan"),
+             len(x)) for b, x in enumerate(sq)]  # fmt: skip
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dump")
@@ -253,6 +294,9 @@ def main() -> int:
     ap.add_argument("--final-map", action="store_true",
                     help="the last recorded map state's poses in place of every earlier "
                     "state's (what a settled map would have given)")  # fmt: skip
+    ap.add_argument("--maturity", action="store_true",
+                    help="only list, per agent, how far each state's settled keyframes were "
+                    "from their final poses, by rank back from the newest settled one")  # fmt: skip
     ap.add_argument("--windows", type=float, default=0.0, metavar="S",
                     help="also per S seconds of each flight: VO, recorded, replayed and "
                     "oracle error (where the map's estimate cost the agent)")  # fmt: skip
@@ -260,6 +304,12 @@ def main() -> int:
                     help="only list, per map estimate of AGENT's correction, the error "
                     "at its newest keyframe of the VO, the estimate and what was sent")  # fmt: skip
     args = ap.parse_args()
+    if args.maturity:
+        print(f"{'agent':8} " + " ".join(f"{f'rank {lo}+ mm':>13}" for lo in RANKS))
+        for ag, a in runs(args.dump).items():
+            rows = maturity(a, read_tum(Path(args.out) / f"{ag}_gt.tum"))
+            print(f"{ag:8} " + " ".join(f"{1e3 * e:13.2f}" for _, e, _ in rows))
+        return 0
     if args.estimates:
         a = runs(args.dump)[args.estimates]
         b = copy.deepcopy(a)

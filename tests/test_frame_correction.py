@@ -367,6 +367,32 @@ def test_final_map_replay_puts_the_last_states_poses_in_every_earlier_one():
     np.testing.assert_allclose(last["T_m"], T_true[keep] * 2.0)
 
 
+def test_maturity_measures_how_far_the_newest_settled_keyframes_moved_by_the_end():
+    """replay_feedback --maturity: an earlier state whose newest 5 settled keyframes sit
+    1 cm from where the last state puts them (the rest where they end) shows 1 cm in the
+    first rank bucket and far less in the older ones; in metres through the last state's
+    fit onto the truth (here a map at half scale)."""
+    rf = _replay_module()
+    gt = load_euroc_gt("MH01")
+    idx = np.linspace(0, len(gt) - 1, 100).astype(int)
+    T_true = gt.poses[idx]
+    T_m = T_true.copy()
+    T_m[:, :3, 3] *= 0.5  # map units: half a metre
+    early_m = T_m[:60].copy()
+    early_m[55:, 0, 3] += 0.005  # newest 5 of the early state: 1 cm off, in map units
+    mk = dict(agent="A", map_id="m")
+    early = {**mk, "ids": np.arange(60), "T_l": T_true[:60], "T_m": early_m,
+             "optimized": np.ones(60, bool), "stamps": gt.stamps_ns[idx[:60]]}  # fmt: skip
+    last = {**mk, "ids": np.arange(100), "T_l": T_true, "T_m": T_m,
+            "optimized": np.ones(100, bool), "stamps": gt.stamps_ns[idx]}  # fmt: skip
+    rows = rf.maturity({"all_fcs": [early, last]}, gt, every=1)
+    rms = {label: e for label, e, _ in rows}
+    assert rows[0][2] == 5 and rows[1][2] == 5
+    # The alignment onto the last state spreads a little of the shift over the rest.
+    assert 0.007 < rms["0-5"] < 0.0105, rows
+    assert all(e < 0.3 * rms["0-5"] for _, e, n in rows[1:] if n), rows
+
+
 def test_replay_computes_what_the_server_sends():
     """bench/replay_feedback.py replays a recorded run from the mapper's arrays (no server
     map per record): each correction must be the one frame_correction sends from a
