@@ -141,6 +141,15 @@ def with_truth(a: dict, gt: Trajectory) -> None:
             r.pop("_estimate", None)
 
 
+def _final_state(a: dict) -> tuple[list[dict], dict, dict[int, int]] | None:
+    """The agent's recorded map states with keyframes, the last of them, and each of its
+    keyframe ids' row in it; None when there is none."""
+    states = [r for r in a["all_fcs"] if r["T_l"] is not None]
+    if not states:
+        return None
+    return states, states[-1], {int(i): k for k, i in enumerate(states[-1]["ids"])}
+
+
 def with_final_map(a: dict) -> int:
     """Put the agent's last recorded map state's poses in place of each earlier state's
     (``--final-map``): the same keyframes, settled at the same times, but where the map
@@ -148,11 +157,10 @@ def with_final_map(a: dict) -> int:
     separates what the map knew when a correction was made from what the rule does with
     a settled map. A keyframe the map dropped before the end keeps the pose it had then;
     returns how many states held one."""
-    states = [r for r in a["all_fcs"] if r["T_l"] is not None]
-    if not states:
+    final = _final_state(a)
+    if final is None:
         return 0
-    last = states[-1]
-    at = {int(i): k for k, i in enumerate(last["ids"])}
+    states, last, at = final
     partial = 0
     for r in states:
         ix = np.array([at.get(int(i), -1) for i in r["ids"]])
@@ -258,11 +266,10 @@ def maturity(a: dict, gt: Trajectory, every: int = 3) -> list[tuple[str, float, 
     hold; map units to metres by the last state's fit onto the truth), and how many.
     Every ``every``-th state is looked at. The newest settled keyframes are what each
     correction is fitted on (feedback.fit_settled)."""
-    states = [r for r in a["all_fcs"] if r["T_l"] is not None]
-    if not states:
+    final = _final_state(a)
+    if final is None:
         return []
-    last = states[-1]
-    at = {int(i): k for k, i in enumerate(last["ids"])}
+    states, last, at = final
     Q_all = last["T_m"][:, :3, 3]
     i = np.clip(np.searchsorted(gt.stamps_ns, last["stamps"]), 0, len(gt) - 1)
     to_m = umeyama(Q_all, gt.poses[i, :3, 3]).s
@@ -277,7 +284,7 @@ def maturity(a: dict, gt: Trajectory, every: int = 3) -> list[tuple[str, float, 
         P = r["T_m"][sett][have, :3, 3]
         Q = Q_all[ix[have]]
         d = np.linalg.norm(umeyama(P, Q).apply(P) - Q, axis=1) * to_m
-        rank = np.arange(len(sett[sett]))[::-1][have]
+        rank = np.arange(int(sett.sum()))[::-1][have]
         for b in range(len(RANKS)):
             sq[b].extend((d[(rank >= edges[b]) & (rank < edges[b + 1])] ** 2).tolist())
     return [(f"{edges[b]:g}-{edges[b + 1]:g}", float(np.sqrt(np.mean(x))) if x else float("nan"),
@@ -289,11 +296,12 @@ def main() -> int:
     ap.add_argument("dump")
     ap.add_argument("out", help="the run's output directory (agentN_gt.tum)")
     ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
-    ap.add_argument("--oracle", action="store_true",
-                    help="ground truth in place of the map's keyframe poses")  # fmt: skip
-    ap.add_argument("--final-map", action="store_true",
-                    help="the last recorded map state's poses in place of every earlier "
-                    "state's (what a settled map would have given)")  # fmt: skip
+    poses = ap.add_mutually_exclusive_group()
+    poses.add_argument("--oracle", action="store_true",
+                       help="ground truth in place of the map's keyframe poses")  # fmt: skip
+    poses.add_argument("--final-map", action="store_true",
+                       help="the last recorded map state's poses in place of every earlier "
+                       "state's (what a settled map would have given)")  # fmt: skip
     ap.add_argument("--maturity", action="store_true",
                     help="only list, per agent, how far each state's settled keyframes were "
                     "from their final poses, by rank back from the newest settled one")  # fmt: skip
