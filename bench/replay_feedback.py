@@ -129,6 +129,11 @@ def recompute(a: dict) -> dict[int, Sim3 | None]:
     return {r["sent_ns"]: current(r, history) for r in a["all_fcs"]}
 
 
+def truth_at(gt: Trajectory, stamps: np.ndarray) -> np.ndarray:
+    """The ground-truth poses at (or just after) each of ``stamps`` (ns)."""
+    return gt.poses[np.clip(np.searchsorted(gt.stamps_ns, stamps), 0, len(gt) - 1)]
+
+
 def with_truth(a: dict, gt: Trajectory) -> None:
     """Put the ground truth at each keyframe's stamp in place of the map's poses in every
     recorded map state of agent ``a`` (``--oracle``): what the correction would do with
@@ -136,18 +141,23 @@ def with_truth(a: dict, gt: Trajectory) -> None:
     serves: frame g is fitted onto the map (feedback.fit_frame)."""
     for r in a["all_fcs"]:
         if r["T_l"] is not None:
-            i = np.clip(np.searchsorted(gt.stamps_ns, r["stamps"]), 0, len(gt) - 1)
-            r["T_m"] = gt.poses[i].copy()
+            r["T_m"] = truth_at(gt, r["stamps"]).copy()
             r.pop("_estimate", None)
 
 
-def _final_state(a: dict) -> tuple[list[dict], dict, dict[int, int]] | None:
-    """The agent's recorded map states with keyframes, the last of them, and each of its
-    keyframe ids' row in it; None when there is none."""
+def _final_state(a: dict):
+    """The agent's recorded map states with keyframes, the last of them, and a function
+    giving keyframe ids' rows in the last (-1 for one it no longer holds); None when
+    there is no state."""
     states = [r for r in a["all_fcs"] if r["T_l"] is not None]
     if not states:
         return None
-    return states, states[-1], {int(i): k for k, i in enumerate(states[-1]["ids"])}
+    at = {int(i): k for k, i in enumerate(states[-1]["ids"])}
+
+    def rows(ids: np.ndarray) -> np.ndarray:
+        return np.array([at.get(int(i), -1) for i in ids], np.int64)
+
+    return states, states[-1], rows
 
 
 def with_final_map(a: dict) -> int:
@@ -160,10 +170,10 @@ def with_final_map(a: dict) -> int:
     final = _final_state(a)
     if final is None:
         return 0
-    states, last, at = final
+    states, last, rows = final
     partial = 0
     for r in states:
-        ix = np.array([at.get(int(i), -1) for i in r["ids"]])
+        ix = rows(r["ids"])
         have = ix >= 0
         partial += int(not have.all())
         r["T_m"] = r["T_m"].copy()
@@ -269,15 +279,14 @@ def maturity(a: dict, gt: Trajectory, every: int = 3) -> list[tuple[str, float, 
     final = _final_state(a)
     if final is None:
         return []
-    states, last, at = final
+    states, last, rows = final
     Q_all = last["T_m"][:, :3, 3]
-    i = np.clip(np.searchsorted(gt.stamps_ns, last["stamps"]), 0, len(gt) - 1)
-    to_m = umeyama(Q_all, gt.poses[i, :3, 3]).s
+    to_m = umeyama(Q_all, truth_at(gt, last["stamps"])[:, :3, 3]).s
     edges = (*RANKS, np.inf)
     sq: list[list[float]] = [[] for _ in RANKS]
     for r in states[:-1:every]:
         sett = np.asarray(r["optimized"], bool)
-        ix = np.array([at.get(int(g), -1) for g in r["ids"][sett]])
+        ix = rows(r["ids"][sett])
         have = ix >= 0
         if have.sum() < 8:
             continue
