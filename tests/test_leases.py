@@ -101,20 +101,24 @@ OWNER = textwrap.dedent("""
     lz = Leases(r, "paused-owner", float(sys.argv[2]))
     assert lz.acquire("m") is not None
     print("owner", flush=True)
-    last_renew = time.monotonic()
+    last_renew = last_tick = time.monotonic()
     while True:
-        # Write first: resumed from a pause, its first act is a write with the lease
-        # it believes it holds (the fencing must refuse it, not the renewal).
+        # Resumed from a pause, its first act is a write with the lease it believes it
+        # holds (the fencing must refuse it, not the renewal): a loop that finds more
+        # than a renewal period gone since its last turn writes before it renews,
+        # wherever in the loop the pause fell.
+        now = time.monotonic()
+        resumed, last_tick = now - last_tick > lz.lease_ms / 3000, now
+        if not resumed and now - last_renew > lz.lease_ms / 3000:
+            last_renew = now
+            if lz.renew():
+                print("lost", flush=True)
         try:
             lz.write("m", lambda p: (p.set("hm:test:last", b"paused-owner"),
                                      p.incr("hm:test:writes")))
         except Fenced as e:
             print("fenced", e, flush=True)
             time.sleep(0.05)
-        if time.monotonic() - last_renew > lz.lease_ms / 3000:
-            last_renew = time.monotonic()
-            if lz.renew():
-                print("lost", flush=True)
         time.sleep(0.01)
 """)
 
