@@ -101,6 +101,7 @@ OWNER = textwrap.dedent("""
     lz = Leases(r, "paused-owner", float(sys.argv[2]))
     assert lz.acquire("m") is not None
     print("owner", flush=True)
+    renew_every = lz.lease_ms / 3000  # as the mapper renews (a third of the lease)
     last_renew = last_tick = time.monotonic()
     while True:
         # Resumed from a pause, its first act is a write with the lease it believes it
@@ -108,8 +109,8 @@ OWNER = textwrap.dedent("""
         # than a renewal period gone since its last turn writes before it renews,
         # wherever in the loop the pause fell.
         now = time.monotonic()
-        resumed, last_tick = now - last_tick > lz.lease_ms / 3000, now
-        if not resumed and now - last_renew > lz.lease_ms / 3000:
+        resumed, last_tick = now - last_tick > renew_every, now
+        if not resumed and now - last_renew > renew_every:
             last_renew = now
             if lz.renew():
                 print("lost", flush=True)
