@@ -5,6 +5,7 @@ the map consistent, and a restart rebuilds the merged map exactly from Redis."""
 from __future__ import annotations
 
 import time
+from operator import attrgetter
 
 import numpy as np
 import pytest
@@ -709,10 +710,18 @@ def test_a_windowed_ba_settles_an_agents_newest_keyframes_and_leaves_the_rest(re
     window = set(req.kf_gids.tolist())
     free = window - set(req.fixed_gids.tolist())
     assert free == unsettled or (len(free) == 60 and free <= unsettled), (len(free), len(unsettled))
-    assert 2 <= len(req.fixed_gids) <= 60 and len(window) < len(smap.kfs), (
+    # 60 for their shared points, and each agent's own newest settled keyframe before
+    # its part of the window (capture.own_anchors), tied to it by a VO edge.
+    assert 2 <= len(req.fixed_gids) <= 62 and len(window) < len(smap.kfs), (
         len(window),
         len(smap.kfs),
     )
+    first = min((smap.kfs[g] for g in free if smap.kfs[g].agent == "A"), key=attrgetter("stamp_ns"))
+    anchor = max((k for k in smap.kfs.values()
+                  if k.agent == "A" and k.optimized and k.stamp_ns < first.stamp_ns),
+                 key=attrgetter("stamp_ns"))  # fmt: skip
+    assert anchor.gid in set(req.fixed_gids.tolist())
+    assert (anchor.gid, first.gid) in {tuple(e) for e in req.odo.tolist()}
     # Out: no second copy, local or global settle.
     assert c.mark_unsettled(now) == []
     corr = run_one()
