@@ -321,7 +321,7 @@ def own_anchors(smap: ServerMap, free: list) -> set[int]:
     its own predecessor is among them only if it shares enough points: without it the
     window hangs on the other agent's placement of that part, and the VO edges hold only
     the window's shape. In the seed-1 pair (bench_team.py --only team2_seed1) agent1's
-    keyframes of its last 30 s sat 12-15 mm off the truth in the live map against its
+    keyframes of its last 30 s sat 10-15 mm off the truth in the live map against its
     VO's 5-6 (the final map put them at 5-8), its frame corrections followed them, and
     its reported pose was above its VO in four runs of four (7.56 / 7.89 / 7.56 / 7.88
     mm against 7.45); with the anchor below in four of four (7.37 / 6.82 / 6.76 / 7.02),
