@@ -57,6 +57,44 @@ def test_move_map_carries_poses_points_and_graph_through_a_similarity():
     assert dst.check_invariants() == []
 
 
+def test_a_window_is_tied_to_each_agents_own_settled_chain_by_its_vo_edge():
+    """Agent A flies on through what agent B mapped: its two unsettled keyframes see
+    only points B's settled keyframes see, its own newest settled keyframe none of them.
+    The window fixes B's keyframes for the shared points and A's newest settled one
+    too (capture.own_anchors), with the VO edge from it to A's first free keyframe;
+    without that A's part of the window would hang on B's placement alone."""
+    from services.mapper.capture import capture_window
+
+    smap = ServerMap("m")
+    # 100-139: B's points, seen by A's free keyframes; 200-219: A's own older ones.
+    desc = np.zeros(32, np.uint8)
+    for g in [*range(100, 140), *range(200, 220)]:
+        smap.add_map_point(ServerMapPoint(g, np.array([0.01 * g, 0.0, 5.0]), desc, 0))
+
+    def kf(gid: int, agent: str, i: int, x: float, mp: list[int], settled: bool) -> ServerKeyframe:
+        T = np.eye(4)
+        T[0, 3] = x
+        n = len(mp)
+        k = ServerKeyframe(gid, agent, i, 1_000 + gid, T, T.copy(), np.zeros((n, 2), np.float32),
+                           np.zeros((n, 2)), np.zeros(n, np.uint8), np.zeros((n, 32), np.uint8),
+                           np.array(mp, np.int64))  # fmt: skip
+        k.optimized = settled
+        return k
+
+    for j in range(4):  # B, settled, every one seeing the points A will see
+        smap.add_keyframe(kf(j, "B", j, 0.1 * j, list(range(100, 140)), True))
+    smap.add_keyframe(kf(10, "A", 0, 1.0, list(range(200, 220)), True))
+    smap.add_keyframe(kf(11, "A", 1, 1.1, list(range(200, 220)), True))
+    smap.add_keyframe(kf(12, "A", 2, 1.2, list(range(100, 140)), False))
+    smap.add_keyframe(kf(13, "A", 3, 1.3, list(range(100, 140)), False))
+    cap = capture_window(smap, max_fixed=2, odometry=True)
+    assert cap is not None
+    assert 11 in cap.fixed and 10 not in cap.fixed
+    assert sum(g < 10 for g in cap.fixed) == 2  # B's, for their shared points
+    pairs = {tuple(e) for e in cap.odometry.pairs.tolist()}
+    assert pairs == {(11, 12), (12, 13)}
+
+
 def _traj(svc: MapperService, agent: str) -> Trajectory:
     h = svc.handlers[agent]
     kfs = sorted((k for k in h.smap.kfs.values() if k.agent == agent), key=lambda k: k.id)
