@@ -58,10 +58,17 @@ def _get(url: str, timeout: float = 2.0):
 
 
 def _env(api_port: int) -> dict[str, str]:
+    # Each port free and distinct from the others: free_port twice in a row can give the
+    # same one (a suite run had placerec's metrics on the API's port, and /health read
+    # Prometheus text).
+    ports = {api_port}
+    while len(ports) < 4:
+        ports.add(free_port())
+    mapper, placerec, optimizer = sorted(ports - {api_port})
     return {**os.environ, "HIVEMAP_API_PORT": str(api_port), "HIVEMAP_API_TOKEN": TOKEN,
-            "HIVEMAP_MAPPER_METRICS_PORT": str(free_port()),
-            "HIVEMAP_PLACEREC_METRICS_PORT": str(free_port()),
-            "HIVEMAP_OPTIMIZER_METRICS_PORT": str(free_port())}  # fmt: skip
+            "HIVEMAP_MAPPER_METRICS_PORT": str(mapper),
+            "HIVEMAP_PLACEREC_METRICS_PORT": str(placerec),
+            "HIVEMAP_OPTIMIZER_METRICS_PORT": str(optimizer)}  # fmt: skip
 
 
 def _stop(proc: subprocess.Popen) -> set[int]:
