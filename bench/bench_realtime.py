@@ -75,7 +75,9 @@ def fly(seq: str, frames: str, realtime: bool, cpus: str, seed: int = 0) -> dict
         "latency_ms_median": 1e3 * st["latency_s_median"],
         "latency_ms_p95": 1e3 * st["latency_s_p95"],
         "track_ms_median": 1e3 * st["track_s_median"], "keyframes": st["keyframes"],
-        "longest_lost_s": st["longest_lost_s"], "ate_m": a.rmse, "ate_pct": a.percent_of_path,
+        "longest_lost_s": st["longest_lost_s"],
+        "local_ba_aborted": st["vo"].get("local_ba_aborted", 0),
+        "ate_m": a.rmse, "ate_pct": a.percent_of_path,
         "load_before": load0, "load_after": os.getloadavg()[0], "render_warm_s": warm_s,
     }  # fmt: skip
 
@@ -117,8 +119,8 @@ def main() -> int:
     path = write_report(args.name, {"cpus": args.cpus, "rows": rows, "means": means})
     print(table([r for r in rows if r["realtime"]],
                 ["seq", "start", "frames", "dropped", "dropped_pct", "latency_ms_median",
-                 "latency_ms_p95", "ate_m", "ate_unpaced_m", "ate_vs_unpaced", "load_before",
-                 "load_after"]))  # fmt: skip
+                 "latency_ms_p95", "local_ba_aborted", "ate_m", "ate_unpaced_m", "ate_vs_unpaced",
+                 "load_before", "load_after"]))  # fmt: skip
     if len(starts) > 1:
         print(table(means, list(means[0])))
     print(f"written {path}")

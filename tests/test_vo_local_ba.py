@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from services.agent.vo.ba_worker import BAWorker
 from services.agent.vo.features import match_by_projection
 from services.agent.vo.local_ba import local_ba
 from shared.camera import PinholeRadTan
@@ -20,8 +21,10 @@ def _observe(T_w_c: np.ndarray, P: np.ndarray) -> np.ndarray:
     return Xc[:, :2] / Xc[:, 2:3]
 
 
-def test_local_ba_converges_to_ground_truth_from_perturbed_start():
-    rng = np.random.default_rng(5)
+def _scene(seed: int = 5):
+    """Six keyframes over 250 points, three gross outliers, keyframes 0 and 1 fixed,
+    the rest and the points perturbed: (truth, P, obs, fixed, bad, start, pts0)."""
+    rng = np.random.default_rng(seed)
     n_kf, n_pts = 6, 250
     P = rng.uniform([-4, -3, 4], [4, 3, 10], (n_pts, 3))
     truth = {
@@ -41,6 +44,12 @@ def test_local_ba_converges_to_ground_truth_from_perturbed_start():
         for k, T in truth.items()
     }
     pts0 = {j: P[j] + rng.normal(0, 0.1, 3) for j in range(n_pts)}
+    return truth, P, obs, fixed, bad, start, pts0
+
+
+def test_local_ba_converges_to_ground_truth_from_perturbed_start():
+    truth, P, obs, fixed, bad, start, pts0 = _scene()
+    n_pts = len(P)
     r = local_ba(start, fixed, pts0, obs, F, max_iters=10)
     assert set(r.poses) == set(truth) - fixed
     assert r.error_after < 0.05 * r.error_before
@@ -65,6 +74,47 @@ def test_local_ba_converges_to_ground_truth_from_perturbed_start():
 def _features(uv: np.ndarray, desc: np.ndarray) -> Features:
     n = len(uv)
     return Features(uv.astype(np.float32), np.zeros(n, np.uint8), desc, np.zeros((n, 2)))
+
+
+def test_local_ba_stopped_after_an_iteration_and_unstopped_one_step_at_a_time():
+    _, _, obs, fixed, _, start, pts0 = _scene()
+    whole = local_ba(start, fixed, pts0, obs, F, max_iters=10)
+    assert whole.iterations > 2
+    # Stepped by hand with nobody stopping it: GTSAM's own loop, the same bits.
+    stepped = local_ba(start, fixed, pts0, obs, F, max_iters=10, should_stop=lambda: False)
+    assert stepped.iterations == whole.iterations
+    for k in whole.poses:
+        assert np.array_equal(stepped.poses[k], whole.poses[k])
+    assert stepped.outliers == whole.outliers
+    # Stopped: one iteration, already downhill, and its outlier check still made.
+    once = local_ba(start, fixed, pts0, obs, F, max_iters=10, should_stop=lambda: True)
+    assert once.iterations == 1
+    assert whole.error_after < once.error_after < once.error_before
+
+
+def test_ba_worker_abort_ends_the_running_solve_and_hands_back_what_it_got():
+    _, _, obs, fixed, _, start, pts0 = _scene()
+    job = {"poses": start, "fixed": fixed, "points": pts0, "obs": obs, "focal": F,
+           "max_iters": 10}  # fmt: skip
+    w = BAWorker()
+    try:
+        w.submit(job)
+        whole = w.result(wait=True)
+        w.abort()  # nothing running: no effect on the next job
+        w.submit(job)
+        assert w.busy
+        w.abort()
+        cut = w.result(wait=True)
+        assert not w.busy
+        # The same job again, not aborted: the flag was cleared at submit.
+        w.submit(job)
+        again = w.result(wait=True)
+    finally:
+        w.close()
+    assert whole.iterations > 2 and again.iterations == whole.iterations
+    # Set before or during the worker's first iteration: it stops after that one.
+    assert cut.iterations == 1 and cut.error_after > whole.error_after
+    assert set(cut.poses) == set(whole.poses)
 
 
 def test_match_by_projection_finds_true_keypoint_within_radius():

@@ -351,7 +351,8 @@ class Agent(AgentLoop):
             st = np.array([s for s, _ in self.kf_poses], np.int64)
             T = np.stack([T for _, T in self.kf_poses])
             (out / f"{self.agent}_keyframes.tum").write_text(format_tum(st, T))
-        vo = {"relocalized": self.vo.relocalized, "rejected_jumps": self.vo.rejected_jumps}
+        vo = {"relocalized": self.vo.relocalized, "rejected_jumps": self.vo.rejected_jumps,
+              "local_ba_aborted": self.vo.ba_aborted}  # fmt: skip
         doc = {**self.stats.to_dict(), "vo": vo}
         (out / f"{self.agent}_stats.json").write_text(json.dumps(doc, indent=2))
 

@@ -76,15 +76,26 @@ def unpack_result(t: tuple) -> BAResult:
                     [tuple(o) for o in out.tolist()], iters, e0, e1)  # fmt: skip
 
 
+_STOP = None  # the worker's end of BAWorker's abort flag (a multiprocessing Event)
+
+
+def _init(stop) -> None:
+    global _STOP
+    _STOP = stop
+
+
 def _solve(packed: dict) -> tuple:
-    return pack_result(local_ba(**unpack_job(packed)))
+    return pack_result(local_ba(**unpack_job(packed), should_stop=_STOP.is_set))
 
 
 class BAWorker:
     def __init__(self) -> None:
         # spawn, not fork: the parent runs Zenoh's threads, which a fork would copy
         # in whatever state they were.
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        ctx = multiprocessing.get_context("spawn")
+        self._stop = ctx.Event()
+        self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init,
+                                         initargs=(self._stop,))  # fmt: skip
         self._fut: Future | None = None
         # Start the process (imports numpy and GTSAM, ~1 s) before the first frame.
         self._pool.submit(_ready).result()
@@ -95,7 +106,14 @@ class BAWorker:
 
     def submit(self, job: dict) -> None:
         assert self._fut is None, "one local BA at a time"
+        self._stop.clear()
         self._fut = self._pool.submit(_solve, pack_job(job))
+
+    def abort(self) -> None:
+        """Ask the running BA to end after its current iteration (its result, as far
+        as it got, still comes back through :meth:`result`)."""
+        if self._fut is not None:
+            self._stop.set()
 
     def result(self, wait: bool = False) -> BAResult | None:
         if self._fut is None or not (wait or self._fut.done()):

@@ -13,6 +13,7 @@ through every elimination: on 58 jobs of MH03 (~8,900 observations each) a BA to
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -39,8 +40,13 @@ def local_ba(
     sigma_px: float = 1.0,
     max_iters: int = 10,
     outlier_px: float = 4.0,
+    should_stop: Callable[[], bool] | None = None,
 ) -> BAResult:
-    """poses: kf id -> T_w_c (window and fixed ones); obs: (kf id, mp id, xy normalized)."""
+    """poses: kf id -> T_w_c (window and fixed ones); obs: (kf id, mp id, xy normalized).
+
+    ``should_stop``: asked after each iteration; True ends the solve there (ORB-SLAM's
+    abort of local BA when tracking inserts a keyframe), with the outlier check run on
+    what the iterations so far gave."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     cal = gtsam.Cal3_S2(focal, focal, 0.0, 0.0, 0.0)
@@ -77,7 +83,7 @@ def local_ba(
     params.setRelativeErrorTol(1e-4)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     e0 = graph.error(values)
-    result = opt.optimize()
+    result = _optimize(opt, params, max_iters, should_stop)
     out_poses = {k: result.atPose3(X(k)).matrix() for k in poses if k not in fixed}
     out_pts = {j: np.asarray(result.atPoint3(L(j))) for j in points}
     outliers = []
@@ -95,3 +101,21 @@ def local_ba(
         bad = np.nonzero((z <= 0) | (err > outlier_px))[0]
         outliers = list(zip(kf_of[bad].tolist(), mp_of[bad].tolist(), strict=True))
     return BAResult(out_poses, out_pts, outliers, opt.iterations(), e0, graph.error(result))
+
+
+def _optimize(opt, params, max_iters: int, should_stop: Callable[[], bool] | None):
+    """``opt.optimize()``, one iteration at a time when it may be stopped. The loop is
+    GTSAM's own (NonlinearOptimizer::defaultOptimize: the same convergence test after
+    each iteration), so a solve nobody stops gives the same values to the bit."""
+    if should_stop is None:
+        return opt.optimize()
+    new = opt.error()
+    if new <= params.getErrorTol():
+        return opt.values()
+    while True:
+        cur = new
+        opt.iterate()
+        new = opt.error()
+        if (opt.iterations() >= max_iters or not np.isfinite(cur)
+                or gtsam.checkConvergence(params, cur, new) or should_stop()):  # fmt: skip
+            return opt.values()

@@ -98,6 +98,7 @@ class VisualOdometry:
         # Local BA off the tracking path (see _local_ba); None: inline, deterministic.
         self.ba_worker: BAWorker | None = None
         self._ba_wanted = False
+        self.ba_aborted = 0  # local BAs asked to end early for a newer keyframe
         # (keyframes, map points) each applied local BA moved, for the agent to send.
         self.ba_applied: list[tuple[list[int], list[int]]] = []
 
@@ -526,7 +527,14 @@ class VisualOdometry:
                 self._apply_ba(local_ba(**job))
             return
         if self.ba_worker.busy:
+            # The running BA ends after its current iteration and the new keyframe's
+            # starts at once (ORB-SLAM aborts local BA when tracking inserts a
+            # keyframe): where a BA takes longer than keyframes come, the newest
+            # keyframe's points would otherwise wait a whole BA more to be refined.
+            if not self._ba_wanted:
+                self.ba_aborted += 1
             self._ba_wanted = True
+            self.ba_worker.abort()
             return
         job = self._ba_job()
         if job is not None:
