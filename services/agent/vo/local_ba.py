@@ -103,7 +103,12 @@ def local_ba(
     return BAResult(out_poses, out_pts, outliers, opt.iterations(), e0, graph.error(result))
 
 
-def _optimize(opt, params, max_iters: int, should_stop: Callable[[], bool] | None):
+def _optimize(
+    opt: gtsam.LevenbergMarquardtOptimizer,
+    params: gtsam.LevenbergMarquardtParams,
+    max_iters: int,
+    should_stop: Callable[[], bool] | None,
+) -> gtsam.Values:
     """``opt.optimize()``, one iteration at a time when it may be stopped. The loop is
     GTSAM's own (NonlinearOptimizer::defaultOptimize: the same convergence test after
     each iteration), so a solve nobody stops gives the same values to the bit."""
