@@ -26,8 +26,10 @@ OPT_SKIPPED = Counter(
 LOOPS_REBASED = Counter(
     "hivemap_loops_rebased_total",
     "Loop constraints after an applied global correction: rebased (satisfied, a rest "
-    "edge from then on), unsatisfied (kept at their measurement) or moved (a rest edge "
-    "the map no longer satisfies, held where it was)",
+    "edge from then on), unsatisfied (kept at their measurement), overruled (left "
+    "unsatisfied by several runs in a row with the map not moving towards it: a rest "
+    "edge where the map holds it) or moved (a rest edge the map no longer satisfies, "
+    "held where it was)",
     ["outcome"],
 )
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
