@@ -940,12 +940,10 @@ def test_a_merge_carries_the_moved_maps_loops_in_the_new_units(redis_url, world)
         assert rot < 1e-6 and trans < 1e-9, (lc.q, lc.c, rot, trans)
 
 
-def test_a_loop_the_correction_left_unsatisfied_keeps_its_measurement(redis_url, world):
-    """Only a loop the corrected map satisfies becomes a rest edge. One the map is still
-    away from (the run could not tie its keyframes, or they arrived late and were
-    carried along) keeps its measurement, so the next global run pulls again: making
-    every carried loop a rest edge (9b35735) left team5 with 1 s delayed messages with
-    one agent's keyframes 157 mm off."""
+def _merged_loop(redis_url, world):
+    """The merged map of ``_merged_with_optimizer`` and its one loop (the merge's): the
+    collaboration, the map, its id, the loop, its keyframes' relative pose in the map,
+    and a function giving a measurement of it off by (degrees, share of its length)."""
     _, svc, _, _, map_id, _ = _merged_with_optimizer(redis_url, world)
     c = svc.collab
     smap = svc.maps[map_id]
@@ -959,6 +957,16 @@ def test_a_loop_the_correction_left_unsatisfied_keeps_its_measurement(redis_url,
         off[:3, 3] = [share * length, 0.0, 0.0]
         return rest @ off
 
+    return c, smap, map_id, lc, rest, measured
+
+
+def test_a_loop_the_correction_left_unsatisfied_keeps_its_measurement(redis_url, world):
+    """Only a loop the corrected map satisfies becomes a rest edge. One the map is still
+    away from (the run could not tie its keyframes, or they arrived late and were
+    carried along) keeps its measurement, so the next global run pulls again: making
+    every carried loop a rest edge (9b35735) left team5 with 1 s delayed messages with
+    one agent's keyframes 157 mm off."""
+    c, smap, map_id, lc, rest, measured = _merged_loop(redis_url, world)
     for deg, share, at_rest in [(0.3, 0.01, True), (3.0, 0.0, False), (0.0, 0.2, False)]:
         S = measured(deg, share)
         c.loops[map_id] = [LoopConstraint(lc.q, lc.c, S)]
@@ -1057,19 +1065,7 @@ def test_a_loop_the_map_keeps_rejecting_is_overruled(redis_url, world):
     holds it, so later pose graphs stop pulling the map by it (in the seed-1 pair such a
     loop, 2.8 degrees and 13 % off, restarted every global BA at 1.7 px RMS instead of
     0.96). One whose residual falls from run to run is being satisfied and is kept."""
-    _, svc, _, _, map_id, _ = _merged_with_optimizer(redis_url, world)
-    c = svc.collab
-    smap = svc.maps[map_id]
-    (lc,) = c.loops[map_id]
-    rest = np.linalg.inv(smap.kfs[lc.q].T_m_kf) @ smap.kfs[lc.c].T_m_kf
-    length = np.linalg.norm(rest[:3, 3])
-
-    def off(deg: float, share: float) -> np.ndarray:
-        d = np.eye(4)
-        d[:3, :3] = exp_so3(np.array([0.0, np.radians(deg), 0.0]))
-        d[:3, 3] = [share * length, 0.0, 0.0]
-        return rest @ d
-
+    c, smap, map_id, lc, rest, off = _merged_loop(redis_url, world)
     assert c.loop_overrule_runs == 2
     # The map does not move towards it: kept once, overruled at the second run.
     wrong = off(2.8, 0.13)
