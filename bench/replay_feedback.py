@@ -99,7 +99,7 @@ def handler_of(r: dict) -> AgentHandler:
     return h
 
 
-def current(r: dict, history: CorrectionHistory) -> Sim3 | None:
+def current(r: dict, history: CorrectionHistory, n_local: int | None = None) -> Sim3 | None:
     """The correction today's frame_correction computes from a recorded map state;
     ``history``: the agent's earlier ones, as its handler on the server keeps them.
 
@@ -111,7 +111,10 @@ def current(r: dict, history: CorrectionHistory) -> Sim3 | None:
         return None
     if "_estimate" not in r:
         r["_estimate"] = estimate_from_poses(
-            r["T_l"], r["T_m"], r["optimized"], Settings().mapper.feedback_correction_kfs
+            r["T_l"],
+            r["T_m"],
+            r["optimized"],
+            Settings().mapper.feedback_correction_kfs if n_local is None else n_local,
         )
     S_g_l = r["_estimate"]
     if S_g_l is None:
@@ -121,12 +124,12 @@ def current(r: dict, history: CorrectionHistory) -> Sim3 | None:
     return history.significant(S_g_l, p)
 
 
-def recompute(a: dict) -> dict[int, Sim3 | None]:
+def recompute(a: dict, n_local: int | None = None) -> dict[int, Sim3 | None]:
     """Today's correction for each of the agent's recorded map states (by ``sent_ns``),
     in the order the mapper computed them, every one of them feeding the agent's
     correction history as on the server (chunks that never reached the agent too)."""
     history = CorrectionHistory()
-    return {r["sent_ns"]: current(r, history) for r in a["all_fcs"]}
+    return {r["sent_ns"]: current(r, history, n_local) for r in a["all_fcs"]}
 
 
 def truth_at(gt: Trajectory, stamps: np.ndarray) -> np.ndarray:

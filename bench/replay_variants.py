@@ -198,14 +198,9 @@ def main() -> int:
         st = a["vo"]["stamps"]
         today = rf.recompute(a)
         if args.variant == "fit-kfs":
-            saved = rf.Settings
-            rf.Settings = lambda: Settings(mapper={"feedback_correction_kfs": args.kfs})
             for r in a["all_fcs"]:
-                r.pop("_estimate", None)
-            try:
-                new = rf.recompute(a)
-            finally:
-                rf.Settings = saved
+                r.pop("_estimate", None)  # today's, cached by the recompute above
+            new = rf.recompute(a, n_local=args.kfs)
         else:
             new = corrections(a, args.variant, args, int(ag.removeprefix("agent")), log)
 

@@ -1002,8 +1002,7 @@ class Collaboration:
                 LOOPS_REBASED.labels(outcome).inc()
                 log.info("loop %d-%d after the correction: %.2f deg, %.1f %% of its length "
                          "off its measurement (%s)", lc.q, lc.c, rot, 100 * trans,
-                         "kept" if not ok else "at rest from now" if outcome == "rebased"
-                         else "overruled by the map: at rest from now")  # fmt: skip
+                         _REBASE_SAYS[outcome])  # fmt: skip
             elif not ok:
                 LOOPS_REBASED.labels("moved").inc()
                 log.info("loop %d-%d at rest moved %.2f deg, %.1f %% of its length since; "
@@ -1090,6 +1089,14 @@ class Collaboration:
             s = scale.get(h.kf_gid(h.latest_kf))
             if s is not None and np.isfinite(s) and s > 0 and abs(s - 1.0) > 1e-9:
                 h.S_m_l = Sim3(h.S_m_l.R, h.S_m_l.t, h.S_m_l.s * s)
+
+
+# What the log says of each outcome of ``_rebase_loops`` for a loop not yet at rest.
+_REBASE_SAYS = {
+    "rebased": "at rest from now",
+    "unsatisfied": "kept",
+    "overruled": "overruled by the map: at rest from now",
+}
 
 
 def _at_rest(smap: ServerMap, lc: LoopConstraint) -> np.ndarray:
