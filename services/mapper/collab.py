@@ -104,6 +104,7 @@ from . import persist
 from .capture import build_request, capture_map, capture_window, copy_covisibility
 from .correction import apply_correction, plan_correction
 from .feedback import settled_scale
+from .loop_support import loop_support
 from .merge import (
     LoopConstraint,
     add_loop_edge,
@@ -270,6 +271,10 @@ class Collaboration:
         # agent1's flight from 120 s to 170 s, and its reported pose ended above its VO.
         self.loop_overrule_runs = 2
         self.loop_overrule_progress = 0.2  # "towards it": its residual down by this share
+        # A new loop whose matched points the map's relative pose reprojects at least
+        # this share as well as the loop's Sim(3) does is at rest from the start
+        # (``loop_support``): the map holds the place already. 0: never.
+        self.loop_map_support = 0.8
         # (map, q, c) -> runs that left the loop unsatisfied, its residual after the first
         self._unsatisfied: dict[tuple[str, int, int], tuple[int, float, float]] = {}
         # Settling (see the module's docstring): 0 = only loops and merges optimize.
@@ -411,7 +416,7 @@ class Collaboration:
                 MATCHES.labels("loop_redundant").inc()
                 return None
             add_loop_edge(smap, q, c)
-            lc = LoopConstraint(q, c, m.S_q_c.copy())
+            lc = self._new_loop(smap, m)
             self.loops.setdefault(map_id, []).append(lc)
             self._persist(map_id, {}, set(), [lc])  # loop edges live in the loops hash
         self._fuse_in_slices(map_id, m)
@@ -419,6 +424,26 @@ class Collaboration:
         log.info("loop closed in %s: %d <-> %d (%d inliers)", map_id, q, c, m.inliers)
         self.mark_dirty(map_id, "loop")
         return "loop"
+
+    def _new_loop(self, smap: ServerMap, m: Match) -> LoopConstraint:
+        """The constraint a new loop adds: its Sim(3), or the map's relative pose when
+        the matched points support that about as well (``loop_support``)."""
+        q, c = m.query_gid, m.cand_gid
+        if self.loop_map_support <= 0:
+            return LoopConstraint(q, c, m.S_q_c.copy())
+        fx = [getattr(self.reg.handler(smap.kfs[g].agent), "camera", None) for g in (q, c)]
+        n_map, n_loop = loop_support(smap, q, c, m.mp_q, m.mp_c, m.S_q_c,
+                                     *(f.fx if f else EUROC_FX for f in fx))  # fmt: skip
+        held = n_map > 0 and n_map >= self.loop_map_support * n_loop
+        rest = _at_rest(smap, LoopConstraint(q, c, m.S_q_c))
+        rot, trans = loop_residual(m.S_q_c, rest)
+        log.info("loop %d-%d: %.2f deg, %.1f %% of its length off the map; matched pairs "
+                 "the map supports %d, the loop %d (%s)", q, c, rot, 100 * trans, n_map,
+                 n_loop, "held by the map: at rest from now" if held else "kept")  # fmt: skip
+        if not held:
+            return LoopConstraint(q, c, m.S_q_c.copy())
+        LOOPS_REBASED.labels("held").inc()
+        return LoopConstraint(q, c, rest, distributed=True)
 
     def _fuse_in_slices(self, map_id: str, m: Match) -> None:
         """The loop edge carries the constraint; fused points tie the two sides for BA.

@@ -29,7 +29,8 @@ LOOPS_REBASED = Counter(
     "edge from then on), unsatisfied (kept at their measurement), overruled (left "
     "unsatisfied by several runs in a row with the map not moving towards it: a rest "
     "edge where the map holds it) or moved (a rest edge the map no longer satisfies, "
-    "held where it was)",
+    "held where it was); held: a new loop whose matched points the map's relative pose "
+    "reprojects about as well as its Sim(3), a rest edge from detection",
     ["outcome"],
 )
 CORRECTIONS = Counter("hivemap_corrections_applied_total", "Optimizer corrections applied")
