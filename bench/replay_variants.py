@@ -20,6 +20,9 @@ Variants (``--variant``):
   previous state's settled keyframes to where the new state puts them) instead of
   refitted on all settled keyframes at each state.
 - ``fit-kfs``: the local fit on ``--kfs`` settled keyframes instead of the setting's.
+- ``hold-unconverged``: no new estimate for any agent while the newest global run
+  applied (not a windowed BA) stopped on its time budget, until one that converged is
+  applied (read from ``--log`` like ``hold-loops``).
 
 ``--oracle`` puts the ground truth in place of the map's keyframe poses first.
 
@@ -58,9 +61,12 @@ def _ns(ts: str) -> int:
     return int(datetime.fromisoformat(ts.replace("Z", "+00:00")).timestamp() * 1e9)
 
 
-def read_log(path: str | Path) -> tuple[list[tuple[int, int, int]], list[tuple[int, str, int]]]:
+def read_log(
+    path: str | Path,
+) -> tuple[list[tuple[int, int, int]], list[tuple[int, str, int, str]]]:
     """From a mapper log: the loops it added, (ns, agent index of q, of c), and the
-    corrections it applied, (ns, reason, ns the optimizer started the run)."""
+    corrections it applied, (ns, reason, ns the optimizer started the run, why its BA
+    stopped)."""
     loops, applied = [], []
     for line in Path(path).read_text().splitlines():
         if not line.startswith("{"):
@@ -78,8 +84,10 @@ def read_log(path: str | Path) -> tuple[list[tuple[int, int, int]], list[tuple[i
         elif msg.startswith("applied correction"):
             reason = re.search(r"'reason': '(\w+)'", msg)
             started = re.search(r"'started_ns': (\d+)", msg)
+            stop = re.search(r"'ba_stop': '(\w+)'", msg)
             if reason and started:
-                applied.append((_ns(r["ts"]), reason[1], int(started[1])))
+                applied.append((_ns(r["ts"]), reason[1], int(started[1]),
+                                stop[1] if stop else ""))  # fmt: skip
     return loops, applied
 
 
@@ -89,9 +97,15 @@ def loop_open(loops, applied, agent_index: int, t: int, cap_s: float) -> bool:
     for tl, a, b in loops:
         if tl > t or t - tl > cap_s * 1e9 or agent_index not in (a, b):
             continue
-        if not any(ta <= t and st > tl and reason != "local" for ta, reason, st in applied):
+        if not any(ta <= t and st > tl and reason != "local" for ta, reason, st, _ in applied):
             return True
     return False
+
+
+def unconverged(applied, t: int) -> bool:
+    """The newest global run applied by ``t`` stopped on its time budget."""
+    last = [stop for ta, reason, _, stop in applied if ta <= t and reason != "local"]
+    return bool(last) and last[-1] == "time_budget"
 
 
 class LagHistory(CorrectionHistory):
@@ -165,7 +179,9 @@ def corrections(a: dict, variant: str, args, agent_index: int, log) -> dict[int,
         return out
     hist = LagHistory(args.lag) if variant == "lag-scatter" else CorrectionHistory()
     for r in a["all_fcs"]:
-        if variant == "hold-loops" and loop_open(*log, agent_index, r["sent_ns"], args.cap):
+        if (variant == "hold-loops" and loop_open(*log, agent_index, r["sent_ns"], args.cap)) or (
+            variant == "hold-unconverged" and unconverged(log[1], r["sent_ns"])
+        ):
             out[r["sent_ns"]] = None
         else:
             out[r["sent_ns"]] = rf.current(r, hist)
@@ -177,7 +193,8 @@ def main() -> int:
     ap.add_argument("dump")
     ap.add_argument("out", help="the run's output directory (agentN_gt.tum)")
     ap.add_argument("--variant", required=True,
-                    choices=["hold-loops", "lag-scatter", "track-frame", "fit-kfs"])  # fmt: skip
+                    choices=["hold-loops", "lag-scatter", "track-frame", "fit-kfs",
+                             "hold-unconverged"])  # fmt: skip
     ap.add_argument("--log", default="", help="the run's mapper log (hold-loops)")
     ap.add_argument("--cap", type=float, default=60.0, help="seconds a loop holds at most")
     ap.add_argument("--lag", type=int, default=3, help="estimates apart (lag-scatter)")
@@ -185,8 +202,8 @@ def main() -> int:
     ap.add_argument("--oracle", action="store_true")
     ap.add_argument("--name", default="", help="also write bench/results/NAME.json")
     args = ap.parse_args()
-    if args.variant == "hold-loops" and not args.log:
-        ap.error("hold-loops needs --log")
+    if args.variant in ("hold-loops", "hold-unconverged") and not args.log:
+        ap.error(f"{args.variant} needs --log")
     log = read_log(args.log) if args.log else ([], [])
     rows, sums = [], np.zeros(3)
     for ag, a in rf.runs(args.dump).items():
