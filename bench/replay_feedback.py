@@ -33,6 +33,10 @@ the live run is what the map did not yet know when each correction was made.
 where the last state put them, by rank back from the newest settled one (the ones a
 correction is fitted on).
 
+``--settle-sooner N`` counts, in every recorded state, the N keyframes after the newest
+settled one as settled too (with ``--oracle``: what settling sooner would give on an
+exact map; alone: the registration's poses of those keyframes taken as they are).
+
 ``--windows 10`` adds, per agent and 10 s of its flight, the error of each of these and
 of the oracle (the same rule on the ground truth): where along the flight the map's
 estimate, rather than the rule, put the reported pose above the VO.
@@ -185,6 +189,20 @@ def with_final_map(a: dict) -> int:
     return partial
 
 
+def settle_sooner(a: dict, n: int) -> None:
+    """Count the ``n`` keyframes after the newest settled one as settled in every
+    recorded map state of agent ``a`` (``--settle-sooner``)."""
+    for r in a["all_fcs"]:
+        if r["T_l"] is None:
+            continue
+        settled = np.asarray(r["optimized"], bool).copy()
+        idx = np.nonzero(settled)[0]
+        if len(idx):
+            settled[: idx[-1] + 1 + n] = True
+        r["optimized"] = settled
+        r.pop("_estimate", None)
+
+
 def replay(a: dict, fc=None) -> np.ndarray:
     """The agent's reported poses, frame by frame: the chunks offered to ReportedPose
     before the frame they arrived ahead of; ``fc(record)`` recomputes each correction
@@ -314,6 +332,9 @@ def main() -> int:
     poses.add_argument("--final-map", action="store_true",
                        help="the last recorded map state's poses in place of every earlier "
                        "state's (what a settled map would have given)")  # fmt: skip
+    ap.add_argument("--settle-sooner", type=int, default=0, metavar="N",
+                    help="count the N keyframes after each state's newest settled one as "
+                    "settled too")  # fmt: skip
     ap.add_argument("--maturity", action="store_true",
                     help="only list, per agent, how far each state's settled keyframes were "
                     "from their final poses, by rank back from the newest settled one")  # fmt: skip
@@ -361,6 +382,8 @@ def main() -> int:
         elif args.final_map:
             n = with_final_map(a)
             print(f"{ag}: {n} map states held keyframes the final one had dropped")
+        if args.settle_sooner > 0:
+            settle_sooner(a, args.settle_sooner)
 
         def err(T, st=st, gt=gt) -> float:
             return ate(Trajectory(st, T), gt).rmse
@@ -387,6 +410,7 @@ def main() -> int:
             "dump": str(args.dump),
             "oracle": args.oracle,
             "final_map": args.final_map,
+            "settle_sooner": args.settle_sooner,
             "run_out": str(args.out),
             "agents": report,
             "vo_sum_m": sums[0],
