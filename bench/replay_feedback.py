@@ -22,7 +22,9 @@ so a replay is what a live run with the same map would have reported.
 
 ``--estimates AGENT`` lists instead, per map estimate of that agent's correction, how far
 the VO, the estimate and what was sent are from the same rule on the ground truth at
-the newest keyframe.
+the newest keyframe, how far (m) that keyframe is from the centre of the keyframes the
+estimate was fitted on, and the angle between the estimate's rotation and the rule's
+on the truth.
 
 ``--oracle`` replays the rule with the ground truth in place of the map's poses,
 ``--final-map`` with the map's own final poses (the last state recorded): the second
@@ -59,11 +61,17 @@ from common import write_report  # noqa: E402
 
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.correction_history import CorrectionHistory  # noqa: E402
-from services.mapper.feedback import estimate_from_poses, fit_frame  # noqa: E402
+from services.mapper.feedback import (  # noqa: E402
+    LOCAL_FIT_KFS,
+    SETTLED_SPREAD,
+    _settled_span,
+    estimate_from_poses,
+    fit_frame,
+)
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
 from shared.feedback_dump import load  # noqa: E402
-from shared.geometry import Sim3, umeyama  # noqa: E402
+from shared.geometry import Sim3, log_so3, umeyama  # noqa: E402
 from shared.ids import gid  # noqa: E402
 from shared.settings import Settings  # noqa: E402
 from shared.trajectory import Trajectory, aligned_errors, ate, read_tum  # noqa: E402
@@ -279,10 +287,17 @@ def estimates(a: dict, b: dict) -> list[tuple]:
             return float("nan") if X is None else 1e3 * m * float(
                 np.linalg.norm(X.apply(p[None])[0] - truth))  # fmt: skip
 
-        settled = r["ids"][np.asarray(r["optimized"], bool)]
+        opt = np.asarray(r["optimized"], bool)
+        settled = r["ids"][opt]
+        # How far the VO carries the correction past the keyframes it was fitted on (a
+        # rotation error of the estimate grows with it) and that rotation error.
+        span = _settled_span(r["T_l"], np.nonzero(opt)[0], LOCAL_FIT_KFS, SETTLED_SPREAD)
+        lever = (float("nan") if span is None else
+                 A_o.s * float(np.linalg.norm(p - r["T_l"][span, :3, 3].mean(0))))  # fmt: skip
+        rot = float(np.degrees(np.linalg.norm(log_so3(S.R @ S_o.R.T))))
         rows.append(((int(r["stamps"][-1]) - st0) * 1e-9, int(r["ids"][-1]),
                      int(settled[-1]) if len(settled) else -1,
-                     off(Sim3.identity()), off(S), off(sent)))  # fmt: skip
+                     off(Sim3.identity()), off(S), off(sent), lever, rot))  # fmt: skip
     return rows
 
 
@@ -355,11 +370,11 @@ def main() -> int:
         a = runs(args.dump)[args.estimates]
         b = copy.deepcopy(a)
         with_truth(b, read_tum(Path(args.out) / f"{args.estimates}_gt.tum"))
-        print(
-            f"{'t_s':>7} {'kf':>5} {'settled':>7} {'vo_mm':>7} {'estimate_mm':>11} {'sent_mm':>8}"
-        )
-        for t, kf, sk, e_vo, e_est, e_sent in estimates(a, b):
-            print(f"{t:7.1f} {kf:5d} {sk:7d} {e_vo:7.2f} {e_est:11.2f} {e_sent:8.2f}")
+        print(f"{'t_s':>7} {'kf':>5} {'settled':>7} {'vo_mm':>7} {'estimate_mm':>11} "
+              f"{'sent_mm':>8} {'lever_m':>7} {'rot_off_deg':>11}")  # fmt: skip
+        for t, kf, sk, e_vo, e_est, e_sent, lever, rot in estimates(a, b):
+            print(f"{t:7.1f} {kf:5d} {sk:7d} {e_vo:7.2f} {e_est:11.2f} {e_sent:8.2f} "
+                  f"{lever:7.2f} {rot:11.3f}")  # fmt: skip
         return 0
     rows, sums, report = [], np.zeros(3), []
     recorded = runs(args.dump)
