@@ -62,11 +62,10 @@ from common import write_report  # noqa: E402
 from services.agent.reported import ReportedPose  # noqa: E402
 from services.mapper.correction_history import CorrectionHistory  # noqa: E402
 from services.mapper.feedback import (  # noqa: E402
-    LOCAL_FIT_KFS,
     SETTLED_SPREAD,
-    _settled_span,
     estimate_from_poses,
     fit_frame,
+    settled_span,
 )
 from services.mapper.registration import AgentHandler  # noqa: E402
 from services.mapper.server_map import ServerKeyframe, ServerMap  # noqa: E402
@@ -268,6 +267,7 @@ def estimates(a: dict, b: dict) -> list[tuple]:
     rule, is what would cost the agent."""
     st0 = a["vo"]["stamps"][0]
     # Every map state feeds the history, as on the server (:func:`recompute`).
+    n_local = Settings().mapper.feedback_correction_kfs  # the local fit's, as in current()
     hist, hist_o = CorrectionHistory(), CorrectionHistory()
     rows, prev = [], None
     for r, ro in zip(a["all_fcs"], b["all_fcs"], strict=True):
@@ -291,7 +291,7 @@ def estimates(a: dict, b: dict) -> list[tuple]:
         settled = r["ids"][opt]
         # How far the VO carries the correction past the keyframes it was fitted on (a
         # rotation error of the estimate grows with it) and that rotation error.
-        span = _settled_span(r["T_l"], np.nonzero(opt)[0], LOCAL_FIT_KFS, SETTLED_SPREAD)
+        span = settled_span(r["T_l"], np.nonzero(opt)[0], n_local, SETTLED_SPREAD)
         lever = (float("nan") if span is None else
                  A_o.s * float(np.linalg.norm(p - r["T_l"][span, :3, 3].mean(0))))  # fmt: skip
         rot = float(np.degrees(np.linalg.norm(log_so3(S.R @ S_o.R.T))))

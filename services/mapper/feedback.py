@@ -119,7 +119,7 @@ def fit_settled(
     keyframes just before them (fitted the same way) by more than this
     (:func:`estimate_from_poses` asks so)."""
     idx = np.nonzero(np.asarray(optimized, bool))[0]
-    span = _settled_span(T_l, idx, n, spread)
+    span = settled_span(T_l, idx, n, spread)
     if span is None:
         return None
     S = fit_sim3_poses(T_l[span], T_m[span])
@@ -127,7 +127,7 @@ def fit_settled(
         return S
     # The stretch before is looked for only when asked: settled_scale fits once per
     # correction and agent under the map's lock, the frame correction per chunk.
-    before = _settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
+    before = settled_span(T_l, idx[: len(idx) - len(span)], n, spread)
     if before is not None:
         S0 = fit_sim3_poses(T_l[before], T_m[before])
         if S0 is not None and abs(S.s / S0.s - 1.0) > _step_bound(T_l, span, before, max_step):
@@ -150,7 +150,7 @@ def _step_bound(T_l: np.ndarray, span: np.ndarray, before: np.ndarray, max_step:
     return min(MAX_SCALE_STEP_NARROW, max(max_step, max_step * SCALE_STEP_SPREAD / narrow))
 
 
-def _settled_span(T_l: np.ndarray, idx: np.ndarray, n: int, spread: float) -> np.ndarray | None:
+def settled_span(T_l: np.ndarray, idx: np.ndarray, n: int, spread: float) -> np.ndarray | None:
     """Of settled keyframes ``idx`` (in keyframe order), the newest ones
     :func:`fit_settled` fits on; None when there are too few or they do not spread."""
     if n <= 0 or len(idx) < max(min(n, MIN_FIT_KFS), 2):
